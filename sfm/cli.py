@@ -14,6 +14,7 @@ import sys
 import traceback
 from pathlib import Path
 
+from sfm.clustering import ClusterOptions
 from sfm.errors import GraphsfmError, InputError
 from sfm.options import add_options, options_from_args
 from sfm.rendered import RenderOptions
@@ -109,6 +110,32 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recorder(args: argparse.Namespace, stage: str):
+    from sfm.recording import Recorder
+
+    workspace = Path(args.workspace)
+    if args.no_recording:
+        return Recorder.disabled()
+    return Recorder(workspace / f"recording-{stage}.rrd", workspace=workspace, spawn=args.spawn)
+
+
+def cmd_cluster(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from sfm.clustering import run_cluster
+
+    options = options_from_args(ClusterOptions, args)
+    with _recorder(args, "cluster") as recorder:
+        result = run_cluster(Path(args.workspace), options, recorder)
+    print(json.dumps(asdict(result), indent=2))
+    return 0
+
+
+def _add_recording_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--spawn", action="store_true", help="also open a Rerun viewer (when installed)")
+    p.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
+
+
 # ------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -125,6 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "PNG images in WORK/images (default: orbit)")
     add_options(p, SynthOptions, flags={"num_images": "images"}, skip=("scene",))
     p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("cluster", help="cut the image graph into overlapping clusters (WORK/clusters.json)")
+    p.add_argument("--workspace", required=True, help="workspace with database.db")
+    add_options(p, ClusterOptions, flags={"completeness_ratio": "completeness", "max_overlap": "overlap"})
+    _add_recording_flags(p)
+    p.set_defaults(func=cmd_cluster)
 
     p = sub.add_parser("evaluate", help="compare a model with ground truth; prints JSON")
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")

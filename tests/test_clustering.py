@@ -1,0 +1,99 @@
+"""The ``cluster`` stage on synthetic databases: clusters.json contract, cut quality, Rerun."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from graph.image_graph import build_image_graph
+from graph.partition import cut_weight
+from sfm.cli import main
+from sfm.clustering import ClusterOptions, run_cluster
+from sfm.database import Database
+from sfm.errors import InputError
+from sfm.recording import entity_paths
+from sfm.synthetic import SynthOptions, run_synth
+
+
+def _graph_from_db(path):
+    with Database(path, readonly=True) as db:
+        images = db.read_images()
+        i, j, w = db.verified_pairs()
+    ids = sorted(images)
+    node = {v: k for k, v in enumerate(ids)}
+    names = [images[v].name for v in ids]
+    ei = np.array([node[int(a)] for a in i])
+    ej = np.array([node[int(b)] for b in j])
+    return names, build_image_graph(len(ids), ei, ej, w.astype(float))
+
+
+def _check_clusters(workspace, s_max, completeness, n_images):
+    data = json.loads((workspace / "clusters.json").read_text())
+    for key in ("clusters", "max_cluster_size", "completeness_ratio", "maxst"):
+        assert key in data
+    cores = [set(c["core"]) for c in data["clusters"]]
+    members = [set(c["members"]) for c in data["clusters"]]
+    assert sum(len(c) for c in cores) == len(set().union(*cores)) == n_images  # cores partition
+    assert max(len(c) for c in cores) <= s_max
+    assert all(c <= m for c, m in zip(cores, members))
+    for k, m in enumerate(members):  # completeness as the paper defines it
+        eta = sum(len(m & o) for j, o in enumerate(members) if j != k) / len(m)
+        assert eta == pytest.approx(data["clusters"][k]["completeness"], abs=1e-5)
+        assert eta >= completeness
+    for a, b, _ in data["maxst"]:  # every MaxST edge is an overlap the merge can use
+        assert len(members[a] & members[b]) >= 3
+    return data, cores
+
+
+def test_cluster_aerial_database(tmp_path):
+    run_synth(tmp_path, SynthOptions(scene="aerial", num_images=300, observations_per_image=500, seed=0))
+    assert main(["cluster", "--workspace", str(tmp_path), "--max-cluster-size", "40", "--completeness", "0.5", "--overlap", "20", "--seed", "0"]) == 0
+    data, cores = _check_clusters(tmp_path, 40, 0.5, 300)
+    assert len(data["clusters"]) >= 8 and len(data["maxst"]) == len(data["clusters"]) - 1
+    # The cut is good: far less weight than random partitions of the same sizes.
+    names, graph = _graph_from_db(tmp_path / "database.db")
+    labels = np.empty(len(names), int)
+    index = {n: k for k, n in enumerate(names)}
+    for k, core in enumerate(cores):
+        labels[[index[n] for n in core]] = k
+    rng = np.random.default_rng(0)
+    random_cuts = [cut_weight(graph, rng.permutation(labels)) for _ in range(5)]
+    assert cut_weight(graph, labels) <= 0.5 * np.mean(random_cuts)
+    # Rerun: the image graph coloured by cluster and the cluster graph with the MaxST.
+    assert {"/graph/images", "/graph/clusters"} <= entity_paths(tmp_path / "recording-cluster.rrd")
+    # Same seed, same clusters.
+    first = (tmp_path / "clusters.json").read_text()
+    run_cluster(tmp_path, ClusterOptions(max_cluster_size=40, max_overlap=20, seed=0))
+    assert (tmp_path / "clusters.json").read_text() == first
+
+
+def test_small_scene_is_one_cluster(tmp_path):
+    run_synth(tmp_path, SynthOptions(num_images=12, observations_per_image=300, seed=1))
+    result = run_cluster(tmp_path, ClusterOptions(max_cluster_size=100))
+    assert result.num_clusters == 1 and result.cluster_sizes == [12]
+    data = json.loads((tmp_path / "clusters.json").read_text())
+    assert data["maxst"] == [] and data["clusters"][0]["completeness"] == 0.0
+
+
+def test_cluster_without_database_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="no database"):
+        run_cluster(tmp_path, ClusterOptions())
+
+
+@pytest.mark.slow
+def test_cut_quality_on_2000_image_aerial(tmp_path):
+    """Issue acceptance: on a 2,000-image aerial graph the cut weighs <= 0.5x a random partition."""
+    run_synth(tmp_path, SynthOptions(scene="aerial", num_images=2000, outlier_ratio=0.2, seed=0))
+    result = run_cluster(tmp_path, ClusterOptions())
+    data, cores = _check_clusters(tmp_path, 100, 0.5, 2000)
+    names, graph = _graph_from_db(tmp_path / "database.db")
+    index = {n: k for k, n in enumerate(names)}
+    labels = np.empty(len(names), int)
+    for k, core in enumerate(cores):
+        labels[[index[n] for n in core]] = k
+    rng = np.random.default_rng(0)
+    ratio = cut_weight(graph, labels) / np.mean([cut_weight(graph, rng.permutation(labels)) for _ in range(5)])
+    assert ratio <= 0.5, ratio
+    assert result.num_clusters >= 20
