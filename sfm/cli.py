@@ -16,6 +16,7 @@ from pathlib import Path
 
 from sfm.clustering import ClusterOptions
 from sfm.errors import GraphsfmError, InputError
+from sfm.mapper_input import MapperOptions
 from sfm.options import add_options, options_from_args
 from sfm.rendered import RenderOptions
 from sfm.synthetic import SynthOptions
@@ -131,6 +132,21 @@ def cmd_cluster(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_map(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from sfm.mapping import run_map
+
+    options = options_from_args(MapperOptions, args)
+    with _recorder(args, "map") as recorder:
+        result = run_map(Path(args.workspace), options, recorder)
+    print(json.dumps(asdict(result), indent=2))
+    return 0
+
+
+MAP_FLAGS = {"refine_given_intrinsics": "refine-intrinsics", "refine_intrinsics": "intrinsics-refinement"}
+
+
 def _add_recording_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spawn", action="store_true", help="also open a Rerun viewer (when installed)")
     p.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
@@ -158,6 +174,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_options(p, ClusterOptions, flags={"completeness_ratio": "completeness", "max_overlap": "overlap"})
     _add_recording_flags(p)
     p.set_defaults(func=cmd_cluster)
+
+    p = sub.add_parser("map", help="incremental SfM of each cluster (or of all images) -> sparse/ or clusters/")
+    p.add_argument("--workspace", required=True, help="workspace with database.db (and clusters.json)")
+    add_options(p, MapperOptions, flags=MAP_FLAGS)
+    _add_recording_flags(p)
+    p.set_defaults(func=cmd_map)
 
     p = sub.add_parser("evaluate", help="compare a model with ground truth; prints JSON")
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")

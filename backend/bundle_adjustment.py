@@ -1,0 +1,501 @@
+"""Bundle adjustment and pose-only refinement as GTSAM factor graphs, behind an array interface.
+
+The local and global BA and the post-PnP pose refinement of the pipeline (DESIGN.md, algorithm
+steps 6 and 8; the paper's final bundle adjustment after merging, section 3 overview).
+
+Conventions (DESIGN.md): poses are ``cam_from_world`` (x_cam = R X + t, OpenCV axes: x right,
+y down, z forward); GTSAM's ``Pose3`` of a camera is ``world_from_cam`` and is converted only by
+:func:`pose3_from_cam_from_world` and :func:`cam_from_world_from_pose3`. Intrinsics are given per
+camera *group* (several images share one camera) as COLMAP model names and parameter vectors:
+``SIMPLE_PINHOLE (f,cx,cy)``, ``PINHOLE (fx,fy,cx,cy)``, ``SIMPLE_RADIAL (f,cx,cy,k)``,
+``RADIAL (f,cx,cy,k1,k2)``, ``OPENCV (fx,fy,cx,cy,k1,k2,p1,p2)``, with COLMAP's distortion on
+normalised coordinates (u, v): r2 = u²+v², radial = k1 r2 + k2 r2², pixel = f u (1+radial) + cx
+(plus OpenCV's tangential terms). The pixel convention is the caller's, as long as principal
+points and observations agree. Observations are three arrays: image index (M,), point index (M,)
+and pixel (M, 2).
+
+Factors: with intrinsics held fixed, ``GenericProjectionFactorCal3DS2`` (pose and point
+variables; Cal3DS2 reproduces every model above exactly). When intrinsics are refined, the
+calibration of each group is ONE variable shared by its images' factors
+(``GeneralSFMFactor2``): ``Cal3Bundler`` (f, k1, k2; principal point constant) for the
+single-focal models refining "focal"/"focal_radial", ``Cal3DS2`` otherwise. Components of the
+calibration that must not move are held by a tight prior (sigma 1e-7 relative) and returned
+exactly as given; fx = fy of single-focal models under "all" is tied by a one-row factor.
+(GTSAM 4.3 gotcha: Python's ``Cal3Bundler.uncalibrate`` binds Cal3f's and skips distortion;
+the C++ factors and ``PinholeCameraCal3Bundler.project`` apply k1 r2 + k2 r2² correctly.)
+Factors are added in a Python loop (~3 µs each; GTSAM has no bulk constructor for them): about
+0.4 s of a 100k-observation BA, whose time goes to GTSAM's linearisation and elimination.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import K, L, X
+
+logger = logging.getLogger(__name__)
+Array = np.ndarray
+
+#: COLMAP camera models supported here and their number of parameters.
+MODEL_NUM_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
+_SINGLE_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+# Free Cal3DS2 components [fx, fy, s, u0, v0, k1, k2, p1, p2] per model beyond the focal lengths.
+_EXTRA_DS2 = {
+    "SIMPLE_PINHOLE": [],
+    "PINHOLE": [],
+    "SIMPLE_RADIAL": [5],
+    "RADIAL": [5, 6],
+    "OPENCV": [5, 6, 7, 8],
+}
+_HOLD_SIGMA = 1e-7  # relative sigma of the priors that hold parameters and the gauge pose
+_TIE_SIGMA = 1e-6  # relative sigma of fx - fy = 0 (tighter makes LM stall)
+_SCALE_SIGMA = 1e-4  # relative sigma of the scale prior: a pure gauge, so its weight is moot
+
+
+@dataclass(frozen=True)
+class BAOptions:
+    """Options of :func:`bundle_adjust`.
+
+    loss, loss_scale: robust loss on each observation's pixel error, "huber" (default),
+        "cauchy" or "none", with its scale in pixels (default 1.0). Huber at 1 px is the GTSAM
+        analogue of COLMAP's local-BA soft-L1 at scale 1: quadratic core, linear tails, convex
+        (so no new local minima), yet a 50 px outlier pulls 50x less than under least squares.
+        "none" is COLMAP's global-BA default, right when outliers were already filtered.
+    fixed_poses: image indices whose poses are held (returned exactly as given).
+    refine_intrinsics: "none" | "focal" | "focal_radial" (focal + the model's distortion, the
+        default, as COLMAP) | "all" (principal point too).
+    gauge_pose: image whose pose anchors the gauge when ``fixed_poses`` is empty (None: the
+        first image with observations). Gauge: with no fixed pose, a prior on that pose plus a
+        prior on the distance from its centre to the farthest camera centre (the scale); with
+        one fixed pose, only that distance prior; with two or more, none (they fix all 7 dof).
+    max_iterations, relative_tolerance, absolute_tolerance: Levenberg-Marquardt stopping rules
+        (tolerances on the decrease of the total cost 0.5 * sum rho(err²); 1e-5 is GTSAM's
+        default: robust losses converge linearly in the tail, where tighter tolerances buy
+        hundredths of a pixel for tens of iterations).
+    ordering: "metis" (default) or "colamd" elimination ordering. (GTSAM 4.3's Schur-mode
+        SfmLevenbergMarquardtOptimizer was 1.7-1.8x slower on 100- and 400-image problems.)
+    verbose: log every LM iteration at INFO (otherwise DEBUG).
+    """
+
+    loss: str = "huber"
+    loss_scale: float = 1.0
+    fixed_poses: tuple[int, ...] = ()
+    refine_intrinsics: str = "focal_radial"
+    gauge_pose: int | None = None
+    max_iterations: int = 100
+    relative_tolerance: float = 1e-5
+    absolute_tolerance: float = 1e-6
+    ordering: str = "metis"
+    verbose: bool = False
+
+
+@dataclass(frozen=True)
+class BAResult:
+    """Result of :func:`bundle_adjust`; errors are pixel distances from :func:`reprojection_errors`.
+
+    rotations (N,3,3), translations (N,3): optimised cam_from_world poses; points (P,3);
+    camera_params: one parameter vector per camera group (the input model's layout);
+    initial_rms / final_rms: RMS reprojection error over all observations; final_mean_error;
+    iterations; time_s (graph building + optimisation); num_observations;
+    success: the optimiser ran and did not increase the cost; converged: it stopped before
+    max_iterations.
+    """
+
+    rotations: np.ndarray
+    translations: np.ndarray
+    points: np.ndarray
+    camera_params: tuple[np.ndarray, ...]
+    initial_rms: float
+    final_rms: float
+    final_mean_error: float
+    iterations: int
+    time_s: float
+    num_observations: int
+    success: bool
+    converged: bool
+
+
+def pose3_from_cam_from_world(rotation: np.ndarray, translation: np.ndarray) -> gtsam.Pose3:
+    """GTSAM ``Pose3`` (world_from_cam) of a camera given as cam_from_world (R, t)."""
+    world_from_cam_rot = np.asarray(rotation, dtype=float).T
+    centre = -world_from_cam_rot @ np.asarray(translation, dtype=float)
+    return gtsam.Pose3(gtsam.Rot3(world_from_cam_rot), centre)
+
+
+def cam_from_world_from_pose3(pose: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world (R, t) of a camera given as a GTSAM ``Pose3`` (world_from_cam)."""
+    rotation = pose.rotation().matrix().T
+    return rotation, -rotation @ pose.translation()
+
+
+def ds2_from_params(model: str, params: np.ndarray) -> np.ndarray:
+    """Cal3DS2 vector [fx, fy, s, u0, v0, k1, k2, p1, p2] equivalent to COLMAP ``params``."""
+    p = np.asarray(params, dtype=float)
+    if len(p) != MODEL_NUM_PARAMS.get(model, -1):
+        raise ValueError(f"camera model {model!r} with {len(p)} parameters is not supported")
+    if model in _SINGLE_FOCAL:
+        extra = list(p[3:]) + [0.0] * (2 - len(p[3:]))
+        return np.array([p[0], p[0], 0.0, p[1], p[2], *extra, 0.0, 0.0])
+    extra = list(p[4:]) + [0.0] * (4 - len(p[4:]))
+    return np.array([p[0], p[1], 0.0, p[2], p[3], *extra])
+
+
+def params_from_ds2(model: str, ds2: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`ds2_from_params` (single-focal models take the mean of fx and fy)."""
+    if model in _SINGLE_FOCAL:
+        return np.array(
+            [0.5 * (ds2[0] + ds2[1]), ds2[3], ds2[4], *ds2[5 : 5 + MODEL_NUM_PARAMS[model] - 3]]
+        )
+    return np.array([ds2[0], ds2[1], ds2[3], ds2[4], *ds2[5 : 5 + MODEL_NUM_PARAMS[model] - 4]])
+
+
+def project(
+    camera_models: Sequence[str],
+    camera_params: Sequence[Array],
+    image_camera: Array,
+    rotations: Array,
+    translations: Array,
+    points: Array,
+    obs_image: Array,
+    obs_point: Array,
+) -> tuple[Array, Array]:
+    """Pixels (M,2) and depths (M,) of the observed points, vectorised (COLMAP's models)."""
+    ds2 = np.stack([ds2_from_params(m, p) for m, p in zip(camera_models, camera_params)])
+    intr = ds2[np.asarray(image_camera)[obs_image]]
+    x_cam = np.einsum("mij,mj->mi", rotations[obs_image], points[obs_point])
+    x_cam += translations[obs_image]
+    depth = x_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = x_cam[:, 0] / depth, x_cam[:, 1] / depth
+    r2 = u * u + v * v
+    radial = intr[:, 5] * r2 + intr[:, 6] * r2 * r2
+    p1, p2 = intr[:, 7], intr[:, 8]
+    ud = u * (1 + radial) + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+    vd = v * (1 + radial) + 2 * p2 * u * v + p1 * (r2 + 2 * v * v)
+    xy = np.stack([intr[:, 0] * ud + intr[:, 2] * vd + intr[:, 3], intr[:, 1] * vd + intr[:, 4]], 1)
+    return xy, depth
+
+
+def reprojection_errors(
+    camera_models: Sequence[str],
+    camera_params: Sequence[Array],
+    image_camera: Array,
+    rotations: Array,
+    translations: Array,
+    points: Array,
+    obs_image: Array,
+    obs_point: Array,
+    obs_xy: Array,
+) -> Array:
+    """Pixel distance (M,) between each observation and its projected point; inf behind camera.
+
+    Same arrays as :func:`bundle_adjust` (without options): use it to filter observations.
+    """
+    cameras = (camera_models, camera_params, image_camera)
+    xy, depth = project(*cameras, rotations, translations, points, obs_image, obs_point)
+    return np.where(depth > 0, np.linalg.norm(xy - obs_xy, axis=1), np.inf)
+
+
+def _rms(err: Array) -> float:
+    return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
+
+
+def _noise(loss: str, scale: float) -> gtsam.noiseModel.Base:
+    """Isotropic 1 px measurement noise wrapped in the robust loss (scale in pixels)."""
+    base = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
+    estimators = {
+        "huber": gtsam.noiseModel.mEstimator.Huber,
+        "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+    }
+    if loss == "none":
+        return base
+    if loss not in estimators:
+        raise ValueError(f"unknown loss {loss!r}; use 'huber', 'cauchy' or 'none'")
+    return gtsam.noiseModel.Robust.Create(estimators[loss].Create(scale), base)
+
+
+def _free_ds2(model: str, refine: str) -> list[int]:
+    """Cal3DS2 components refined for ``model`` under ``refine`` (skew never)."""
+    levels = {"focal": 0, "focal_radial": 1, "all": 2}
+    if refine not in levels:
+        raise ValueError(f"unknown refine_intrinsics {refine!r}")
+    free = [0, 1] + (_EXTRA_DS2[model] if levels[refine] >= 1 else [])
+    return free + ([3, 4] if levels[refine] == 2 else [])
+
+
+def _uses_bundler(model: str, refine: str) -> bool:
+    """Cal3Bundler (f, k1, k2 variable; principal point constant) fits, else Cal3DS2."""
+    return model in _SINGLE_FOCAL and refine != "all"
+
+
+def _add_calibration(graph, values, key: int, model: str, params: Array, refine: str) -> None:
+    """Insert one group's calibration variable, with priors holding what is not refined."""
+    ds2, free = ds2_from_params(model, params), _free_ds2(model, refine)
+    if _uses_bundler(model, refine):
+        values.insert(key, gtsam.Cal3Bundler(ds2[0], ds2[5], ds2[6], ds2[3], ds2[4]))
+        held, sigmas = [j not in free for j in (0, 5, 6)], np.array([ds2[0], 1.0, 1.0])
+        cal, prior = values.atCal3Bundler(key), gtsam.PriorFactorCal3Bundler
+    else:
+        values.insert(key, gtsam.Cal3DS2(*ds2))
+        held, sigmas = [j not in free for j in range(9)], np.array([ds2[0]] * 5 + [1.0] * 4)
+        cal, prior = values.atCal3DS2(key), gtsam.PriorFactorCal3DS2
+    if model in _SINGLE_FOCAL and not _uses_bundler(model, refine):  # tie fx = fy
+        tie_jacobian = np.eye(1, 9) - np.eye(1, 9, 1)
+
+        def tie(this, vals, jacobians):
+            if jacobians is not None:
+                jacobians[0] = tie_jacobian
+            return tie_jacobian @ vals.atCal3DS2(this.keys()[0]).vector()
+
+        tie_noise = gtsam.noiseModel.Isotropic.Sigma(1, _TIE_SIGMA * ds2[0])
+        graph.add(gtsam.CustomFactor(tie_noise, [key], tie))
+    if any(held):
+        precisions = np.where(held, 1.0 / (_HOLD_SIGMA * sigmas) ** 2, 0.0)
+        graph.add(prior(key, cal, gtsam.noiseModel.Diagonal.Precisions(precisions)))
+
+
+def _calibration_params(values, key: int, cameras: tuple, group: int, refine: str) -> Array:
+    """The group's refined parameters; held ones exactly as given."""
+    model = cameras[0][group]
+    ds2 = ds2_from_params(model, cameras[1][group])
+    if _uses_bundler(model, refine):
+        cal = values.atCal3Bundler(key)
+        new = np.array([cal.fx(), cal.fx(), 0.0, cal.px(), cal.py(), cal.k1(), cal.k2(), 0.0, 0.0])
+    else:
+        new = values.atCal3DS2(key).vector()
+    free = _free_ds2(model, refine)
+    ds2[free] = new[free]
+    return params_from_ds2(model, ds2)
+
+
+def _add_projection_factors(graph, values, cameras, obs, groups, noise, refine: str) -> None:
+    """One projection factor per observation; calibration variables when intrinsics move."""
+    camera_models, camera_params, image_camera = cameras
+    obs_image, obs_point, obs_xy = obs
+    obs_camera = image_camera[obs_image].tolist()
+    rows = zip(obs_image.tolist(), obs_point.tolist(), obs_camera, obs_xy)
+    if refine == "none":  # no calibration variables: projection factors with constant Cal3DS2
+        cals = {
+            g: gtsam.Cal3DS2(*ds2_from_params(camera_models[g], camera_params[g])) for g in groups
+        }
+        for i, j, g, xy in rows:
+            graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, noise, X(i), L(j), cals[g]))
+        return
+    factor = {}  # one calibration variable per group, shared by its observations
+    for g in groups:
+        _add_calibration(graph, values, K(g), camera_models[g], camera_params[g], refine)
+        bundler = _uses_bundler(camera_models[g], refine)
+        factor[g] = (
+            gtsam.GeneralSFMFactor2Cal3Bundler if bundler else gtsam.GeneralSFMFactor2Cal3DS2
+        )
+    for i, j, g, xy in rows:
+        graph.add(factor[g](xy, noise, X(i), L(j), K(g)))
+
+
+def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions) -> None:
+    """Priors on held poses, and the gauge (anchor pose and scale), see :class:`BAOptions`."""
+    centres = np.array([pose.translation() for pose in poses])[observed]
+    spread = np.median(np.linalg.norm(centres - centres.mean(0), axis=1))
+    scale = max(float(spread), 1e-9)
+    pose_sigmas = _HOLD_SIGMA * np.array([1, 1, 1, scale, scale, scale])
+    anchors = [i for i in options.fixed_poses if i in set(observed.tolist())]
+    if not anchors:
+        anchor = options.gauge_pose if options.gauge_pose is not None else int(observed[0])
+        if anchor not in set(observed.tolist()):
+            raise ValueError(f"gauge_pose {anchor} has no observations")
+        anchors = [anchor]
+    for i in anchors:
+        prior_noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)
+        graph.add(gtsam.PriorFactorPose3(X(i), values.atPose3(X(i)), prior_noise))
+    if len(anchors) == 1 and len(observed) > 1:
+        dist = np.linalg.norm(centres - centres[observed.tolist().index(anchors[0])], axis=1)
+        far, d = int(observed[np.argmax(dist)]), max(float(dist.max()), 1e-9)
+        range_noise = gtsam.noiseModel.Isotropic.Sigma(1, _SCALE_SIGMA * d)
+        graph.add(gtsam.RangeFactorPose3(X(anchors[0]), X(far), d, range_noise))
+
+
+def _optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtOptimizer:
+    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log."""
+    if options.ordering not in ("metis", "colamd"):
+        raise ValueError(f"unknown ordering {options.ordering!r}; use 'metis' or 'colamd'")
+    params = gtsam.LevenbergMarquardtParams()
+    params.setOrderingType(options.ordering.upper())
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_tolerance)
+    params.setAbsoluteErrorTol(options.absolute_tolerance)
+    level = logging.INFO if options.verbose else logging.DEBUG
+    params.iterationHook = lambda it, before, after: logger.log(
+        level, "LM iteration %d: cost %.6g -> %.6g", it, before, after
+    )
+    return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+
+
+@contextlib.contextmanager
+def _quiet_stdout(what: str):
+    """Send what GTSAM's C++ code prints on stdout (GeneralSFMFactor prints a line per
+    ``CheiralityException`` while LM tries a step that puts a point behind a camera) to the
+    debug log instead of the caller's stdout, which may carry JSON."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+            sink.seek(0)
+            lines = sink.read().decode(errors="replace").splitlines()
+            if lines:
+                logger.debug("%s: GTSAM printed %d lines, e.g. %s", what, len(lines), lines[0])
+
+
+def _optimize(optimizer, values: gtsam.Values, what: str) -> tuple[gtsam.Values, bool]:
+    """Run the optimiser; on a GTSAM error (e.g. an indeterminant system) keep the input."""
+    try:
+        with _quiet_stdout(what):
+            return optimizer.optimize(), True
+    except RuntimeError as exc:
+        logger.warning("%s failed: %s", what, exc)
+        return values, False
+
+
+def bundle_adjust(
+    camera_models: Sequence[str],
+    camera_params: Sequence[Array],
+    image_camera: Array,
+    rotations: Array,
+    translations: Array,
+    points: Array,
+    obs_image: Array,
+    obs_point: Array,
+    obs_xy: Array,
+    options: BAOptions = BAOptions(),
+) -> BAResult:
+    """Jointly refine poses, points and (optionally) per-group intrinsics (robust LM, GTSAM).
+
+    ``camera_models`` (G,) names and ``camera_params`` (G,) vectors per group; ``image_camera``
+    (N,) group of each image; ``rotations`` (N,3,3) and ``translations`` (N,3) cam_from_world;
+    ``points`` (P,3); observations ``obs_image`` (M,), ``obs_point`` (M,), ``obs_xy`` (M,2).
+    Images, points and groups without observations are returned unchanged.
+    """
+    start = time.perf_counter()
+    if len(obs_image) == 0:
+        raise ValueError("bundle adjustment needs at least one observation")
+    rotations, translations = np.asarray(rotations, float), np.asarray(translations, float)
+    points, obs_xy = np.asarray(points, float), np.asarray(obs_xy, float)
+    obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
+    image_camera, refine = np.asarray(image_camera, np.int64), options.refine_intrinsics
+    cameras, obs = (camera_models, camera_params, image_camera), (obs_image, obs_point, obs_xy)
+    initial_err = reprojection_errors(*cameras, rotations, translations, points, *obs)
+    observed, seen_points = np.unique(obs_image), np.unique(obs_point)
+    groups = sorted(set(image_camera[observed].tolist()))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    poses = [pose3_from_cam_from_world(r, t) for r, t in zip(rotations, translations)]
+    for i in observed.tolist():
+        values.insert(X(i), poses[i])
+    for j in seen_points.tolist():
+        values.insertPoint3(L(j), points[j])
+    noise = _noise(options.loss, options.loss_scale)
+    _add_projection_factors(graph, values, cameras, obs, groups, noise, refine)
+    _add_gauge(graph, values, poses, observed, options)
+    optimizer = _optimizer(graph, values, options)
+    built_s = time.perf_counter() - start
+    logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
+    result, success = _optimize(optimizer, values, "bundle adjustment")
+    success = success and graph.error(result) <= graph.error(values)
+    rot_out, trans_out, pts_out = rotations.copy(), translations.copy(), points.copy()
+    for i in set(observed.tolist()) - set(options.fixed_poses):
+        rot_out[i], trans_out[i] = cam_from_world_from_pose3(result.atPose3(X(i)))
+    for j in seen_points.tolist():
+        pts_out[j] = result.atPoint3(L(j))
+    params_out = [np.asarray(p, float).copy() for p in camera_params]
+    for g in groups if refine != "none" else []:
+        params_out[g] = _calibration_params(result, K(g), cameras, g, refine)
+    final_err = reprojection_errors(
+        camera_models, params_out, image_camera, rot_out, trans_out, pts_out, *obs
+    )
+    res = BAResult(
+        rotations=rot_out,
+        translations=trans_out,
+        points=pts_out,
+        camera_params=tuple(params_out),
+        initial_rms=_rms(initial_err),
+        final_rms=_rms(final_err),
+        final_mean_error=float(final_err.mean()) if len(final_err) else 0.0,
+        iterations=optimizer.iterations(),
+        time_s=time.perf_counter() - start,
+        num_observations=len(obs_image),
+        success=success,
+        converged=optimizer.iterations() < options.max_iterations,
+    )
+    summary = f"{res.initial_rms:.4f} -> {res.final_rms:.4f} px, {res.iterations} iterations"
+    level = logging.INFO if options.verbose else logging.DEBUG
+    logger.log(level, "BA on %d observations: RMS %s, %.2f s", len(obs_image), summary, res.time_s)
+    return res
+
+
+@dataclass(frozen=True)
+class PoseRefineResult:
+    """Result of :func:`refine_pose`: cam_from_world (rotation, translation) and pixel RMS."""
+
+    rotation: Array
+    translation: Array
+    initial_rms: float
+    final_rms: float
+    iterations: int
+    success: bool
+
+
+def refine_pose(
+    camera_model: str,
+    camera_params: Array,
+    rotation: Array,
+    translation: Array,
+    points: Array,
+    obs_xy: Array,
+    loss: str = "huber",
+    loss_scale: float = 1.0,
+    max_iterations: int = 50,
+) -> PoseRefineResult:
+    """Refine one image's cam_from_world pose from 2D-3D matches (points and intrinsics fixed).
+
+    Used after PnP: ``points`` (K,3) observed at ``obs_xy`` (K,2). Each point is a variable
+    pinned by a tight prior (GTSAM's Python API has no pose-only projection factor), so the
+    pose is the only thing that moves; the robust loss is as in :class:`BAOptions`.
+    """
+    rotation, translation = np.asarray(rotation, float), np.asarray(translation, float)
+    points, obs_xy = np.asarray(points, float), np.asarray(obs_xy, float)
+    index = np.arange(len(points))
+    cameras, obs = ([camera_model], [camera_params], [0]), (0 * index, index, obs_xy)
+    err0 = reprojection_errors(*cameras, rotation[None], translation[None], points, *obs)
+    cal = gtsam.Cal3DS2(*ds2_from_params(camera_model, camera_params))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    values.insert(X(0), pose3_from_cam_from_world(rotation, translation))
+    noise = _noise(loss, loss_scale)
+    scale = max(float(np.linalg.norm(points - points.mean(0), axis=1).max(initial=0.0)), 1e-9)
+    point_noise = gtsam.noiseModel.Isotropic.Sigma(3, _HOLD_SIGMA * scale)
+    for j, (point, xy) in enumerate(zip(points, obs_xy)):
+        values.insertPoint3(L(j), point)
+        graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, noise, X(0), L(j), cal))
+        graph.add(gtsam.PriorFactorPoint3(L(j), point, point_noise))
+    options = BAOptions(
+        max_iterations=max_iterations,
+        relative_tolerance=1e-8,
+        absolute_tolerance=1e-10,
+        ordering="colamd",
+    )
+    optimizer = _optimizer(graph, values, options)
+    result, success = _optimize(optimizer, values, "pose refinement")
+    rot, trans = cam_from_world_from_pose3(result.atPose3(X(0)))
+    err = reprojection_errors(*cameras, rot[None], trans[None], points, *obs)
+    return PoseRefineResult(rot, trans, _rms(err0), _rms(err), optimizer.iterations(), success)

@@ -1,0 +1,145 @@
+"""Incremental SfM over one set of images (paper section 3.2: "we choose incremental SfM").
+
+The loop, as COLMAP's incremental mapper: choose an initial pair with many inliers and a wide
+triangulation angle (not a homography-dominated pair), reconstruct it from its essential matrix;
+then repeatedly register the next best image (most visible triangulated tracks, well spread) by
+PnP RANSAC (OpenCV USAC) refined on its inliers; triangulate the tracks it newly sees (batched
+multi-view DLT with angle, depth and reprojection checks); run a local BA around it; run a global
+BA (and re-triangulation, and filtering of observations above ``max_reproj_error``) whenever the
+model has grown by ``global_ba_ratio``.  When no image can be registered any more, a new model is
+started from the remaining images: several models are a result, not an error.
+
+State lives in flat numpy arrays over the observations of the tracks (``sfm.tracks``), so each
+step is vectorised; the geometry bookkeeping is in :class:`sfm.mapper_state.MapperState`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+from backend.bundle_adjustment import refine_pose
+from sfm.mapper_input import MapperInput, MapperOptions
+from sfm.mapper_state import MapperState
+from sfm.model import Reconstruction
+from sfm.recording import Recorder
+
+log = logging.getLogger(__name__)
+
+PLANAR_CONFIGS = (4, 5, 6)  # PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC
+
+
+def _relative_pose(state: MapperState, i: int, j: int, matches: np.ndarray, seed: int):
+    """cam_j_from_cam_i (R, t with |t| = 1) from the matches' essential matrix, and its inliers."""
+    x1 = state.norm_of(i, matches[:, 0])
+    x2 = state.norm_of(j, matches[:, 1])
+    thr = state.opts.max_reproj_error / np.mean([state.focal(i), state.focal(j)])
+    cv2.setRNGSeed(seed)
+    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=10000)
+    if E is None or E.shape != (3, 3):
+        return None
+    n, R, t, mask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
+    inl = mask.ravel() > 0
+    if n < 8:
+        return None
+    return R, t.ravel() / np.linalg.norm(t), inl
+
+
+def _try_initial_pair(state: MapperState, min_angle: float, tried: set) -> bool:
+    """Find and reconstruct an initial pair among unregistered images (most inliers first)."""
+    opts = state.opts
+    cands = [
+        (len(m), i, j, m)
+        for (i, j), (m, config) in state.pair_matches.items()
+        if not state.registered[i] and not state.registered[j] and (i, j) not in tried
+        and config not in PLANAR_CONFIGS and len(m) >= max(opts.abs_pose_min_num_inliers, opts.min_num_matches)
+    ]
+    cands.sort(key=lambda c: (-c[0], c[1], c[2]))
+    best = None
+    for n_inl, i, j, m in cands[: opts.init_max_pairs]:
+        rel = _relative_pose(state, i, j, m, opts.seed)
+        if rel is None:
+            continue
+        R, t, inl = rel
+        score, angle = state.two_view_score(i, j, R, t, m[inl])
+        log.debug("init candidate %s-%s: %d inliers, median angle %.1f deg, %d points", state.names[i], state.names[j], n_inl, angle, score)
+        if angle >= min_angle and score >= opts.abs_pose_min_num_inliers and (best is None or score > best[0]):
+            best = (score, i, j, R, t)
+    if best is None:
+        return False
+    _, i, j, R, t = best
+    tried.add((i, j))
+    state.start_model(i, j, R, t)
+    return True
+
+
+def _register_next(state: MapperState) -> bool:
+    """Register the best unregistered image that PnP accepts; False when none can be."""
+    opts = state.opts
+    for i in state.next_image_candidates():
+        rows, X = state.visible_points(i)
+        if len(rows) < opts.abs_pose_min_num_inliers:
+            break  # candidates are sorted by visible points
+        x = state.obs_norm[rows]
+        usac = cv2.UsacParams()
+        usac.threshold = opts.max_reproj_error / state.focal(i)
+        usac.confidence = 0.9999
+        usac.maxIterations = 10000
+        usac.randomGeneratorState = opts.seed + i
+        usac.isParallel = False
+        ok, _, rvec, tvec, inliers = cv2.solvePnPRansac(X, x, np.eye(3), None, params=usac)
+        if not ok or inliers is None:
+            state.note_failure(i, len(rows))
+            continue
+        inliers = inliers.ravel()
+        if len(inliers) < opts.abs_pose_min_num_inliers or len(inliers) < opts.abs_pose_min_inlier_ratio * len(rows):
+            state.note_failure(i, len(rows))
+            continue
+        R, _ = cv2.Rodrigues(rvec)
+        cam = state.camera_of(i)
+        refined = refine_pose(cam.model, state.params[state.cam_index[i]], R, tvec.ravel(), X[inliers],
+                              state.obs_px[rows[inliers]], loss=opts.loss, loss_scale=opts.loss_scale)
+        state.register(i, refined.rotation, refined.translation)
+        return True
+    return False
+
+
+def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder: Recorder | None = None) -> list[Reconstruction]:
+    """All models incremental SfM makes of ``payload``'s images, largest first."""
+    recorder = recorder or Recorder.disabled()
+    state = MapperState(payload, opts)
+    models: list[Reconstruction] = []
+    tried: set = set()
+    while len(models) < opts.max_num_models:
+        started = False
+        for angle in (opts.init_min_tri_angle, opts.init_min_tri_angle / 2, opts.init_min_tri_angle / 4):
+            if _try_initial_pair(state, angle, tried):
+                started = True
+                break
+        if not started:
+            break
+        last_global = state.num_registered
+        state.log_progress(recorder)
+        while _register_next(state):
+            state.triangulate_new(state.last_registered)
+            state.local_ba(state.last_registered)
+            if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= 10:
+                state.global_ba()
+                state.retriangulate()
+                last_global = state.num_registered
+            state.log_progress(recorder)
+        state.global_ba(final=True)
+        state.retriangulate()
+        state.global_ba(final=True)
+        model = state.to_reconstruction()
+        n = state.num_registered
+        state.close_model()
+        if n >= opts.min_model_size:
+            models.append(model)
+            log.info("%s: model %d with %d images, %d points", payload.label, len(models) - 1, n, len(model.points3D))
+        if int(np.sum(~state.used)) < 2:
+            break
+    models.sort(key=lambda m: -len(m.images))
+    return models

@@ -1,0 +1,85 @@
+"""The self-contained input of one local SfM run (a cluster), and its options.
+
+A :class:`MapperInput` holds everything incremental SfM needs (image names and ids, camera
+priors, keypoints, the verified matches of its pairs) and no paths into the caller's disk, so
+it can be pickled to a worker process or another machine (DESIGN.md, "Execution").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CameraPrior:
+    """A camera group: COLMAP model name, size, parameters (OpenCV pixel convention), whether
+    the focal length comes from EXIF or the user, and whether the intrinsics are held fixed."""
+
+    model: str
+    width: int
+    height: int
+    params: np.ndarray
+    prior_focal_length: bool = False
+    fixed: bool = False
+
+
+@dataclass(frozen=True)
+class MapperInput:
+    """One cluster's payload.  Image ``k`` has database id ``image_ids[k]``, name ``names[k]``,
+    camera ``camera_ids[k]`` (a key of ``cameras``) and keypoints ``keypoints[k]`` (K_k, 2);
+    ``pairs`` lists ``(k1, k2, inlier_matches (M,2), config)`` with local indices k1 < k2."""
+
+    image_ids: list[int]
+    names: list[str]
+    camera_ids: list[int]
+    cameras: dict[int, CameraPrior]
+    keypoints: list[np.ndarray]
+    pairs: list[tuple[int, int, np.ndarray, int]]
+    colors: list[np.ndarray] | None = None  # per image (K_k, 3) uint8 RGB at each keypoint
+    label: str = "C0"
+
+
+@dataclass(frozen=True)
+class MapperOptions:
+    """Options of incremental SfM (COLMAP's documented defaults where they apply).
+
+    min_num_matches: pairs with fewer verified inliers are ignored.
+    init_min_tri_angle: median triangulation angle (degrees) wanted of the initial pair; it is
+        halved twice if no pair reaches it (COLMAP: 16).
+    init_max_pairs: initial-pair candidates examined per attempt (most inliers first).
+    abs_pose_min_num_inliers: PnP inliers needed to register an image (COLMAP: 30).
+    abs_pose_min_inlier_ratio: share of PnP inliers needed (COLMAP: 0.25).
+    max_reproj_error: pixel error above which an observation is an outlier (COLMAP: 4).
+    min_tri_angle: smallest triangulation angle (degrees) of a point (COLMAP: 1.5).
+    local_ba_num_images: images optimised by the local BA after each registration (COLMAP: 6).
+    global_ba_ratio: a global BA runs when the model has grown by this factor (COLMAP: 1.1).
+    refine_intrinsics: one of none|focal|focal_radial|all: what global BA refines of cameras
+        whose intrinsics were not given by the user.
+    refine_given_intrinsics: also refine intrinsics given with --intrinsics (held fixed
+        otherwise).
+    loss: one of huber|cauchy|none, the robust loss of every BA, scale ``loss_scale`` pixels.
+    loss_scale: scale of the robust loss in pixels.
+    min_model_size: smallest number of registered images kept as a model.
+    max_num_models: the most models made from one input.
+    seed: seed of every random choice (PnP sampling).
+    """
+
+    min_num_matches: int = 15
+    init_min_tri_angle: float = 16.0
+    init_max_pairs: int = 30
+    abs_pose_min_num_inliers: int = 30
+    abs_pose_min_inlier_ratio: float = 0.25
+    max_reproj_error: float = 4.0
+    min_tri_angle: float = 1.5
+    local_ba_num_images: int = 6
+    global_ba_ratio: float = 1.1
+    refine_intrinsics: str = "focal_radial"
+    refine_given_intrinsics: bool = False
+    loss: str = "huber"
+    loss_scale: float = 1.0
+    min_model_size: int = 3
+    max_num_models: int = 50
+    seed: int = 0
+

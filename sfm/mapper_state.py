@@ -1,0 +1,402 @@
+"""The state of incremental SfM in flat arrays over track observations, and its geometry steps.
+
+Observation rows come from ``sfm.tracks`` (grouped by track).  Per row: image, keypoint, pixel,
+normalised coordinates (distortion removed with the current intrinsics) and whether the row is
+an inlier of its track's 3D point.  Per track: position and validity.  Per image: pose
+``cam_from_world`` and registration.  Every step (triangulation, filtering, BA assembly) is a
+vectorised operation on these arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from backend.bundle_adjustment import BAOptions, bundle_adjust
+from sfm.camera_models import project, unproject
+from sfm.mapper_input import MapperInput, MapperOptions
+from sfm.model import Camera, Image, Point3D, Reconstruction
+from sfm.recording import Recorder
+from sfm.tracks import build_tracks
+from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
+
+log = logging.getLogger(__name__)
+
+
+def _gather(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the given tracks (concatenated) and the position of each row's track in ``tracks``."""
+    lengths = starts[tracks + 1] - starts[tracks]
+    owner = np.repeat(np.arange(len(tracks)), lengths)
+    first = np.repeat(starts[tracks], lengths)
+    offset = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return first + offset, owner
+
+
+class MapperState:
+    """Arrays and steps of one incremental reconstruction (see the module docstring)."""
+
+    def __init__(self, payload: MapperInput, opts: MapperOptions) -> None:
+        self.payload, self.opts = payload, opts
+        self.names = payload.names
+        n = len(payload.names)
+        self.cam_keys = sorted(payload.cameras)
+        self.cam_index = np.array([self.cam_keys.index(c) for c in payload.camera_ids], dtype=np.int64)
+        self.priors = [payload.cameras[c] for c in self.cam_keys]
+        self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
+        self.pair_matches = {
+            (int(i), int(j)): (np.asarray(m, dtype=np.int64), int(cfg))
+            for i, j, m, cfg in payload.pairs
+            if len(m) >= opts.min_num_matches
+        }
+        tracks = build_tracks([len(k) for k in payload.keypoints], ((i, j, m) for (i, j), (m, _) in self.pair_matches.items()))
+        self.starts = tracks.starts
+        self.obs_image, self.obs_kp = tracks.image, tracks.keypoint
+        self.obs_track = tracks.track_of_observation()
+        self.obs_px = np.zeros((len(self.obs_image), 2))
+        for i in range(n):
+            rows = np.flatnonzero(self.obs_image == i)
+            self.obs_px[rows] = np.asarray(payload.keypoints[i], dtype=np.float64)[self.obs_kp[rows], :2]
+        order = np.argsort(self.obs_image, kind="stable")
+        bounds = np.searchsorted(self.obs_image[order], np.arange(n + 1))
+        self.image_rows = [order[bounds[i] : bounds[i + 1]] for i in range(n)]
+        self.obs_norm = np.zeros_like(self.obs_px)
+        self._update_normalised()
+        self.num_tracks = tracks.num_tracks
+        self.used = np.zeros(n, dtype=bool)  # belongs to a finished model
+        self.failed = np.zeros(n, dtype=np.int64)
+        self.fail_visible = np.zeros(n, dtype=np.int64)
+        self._reset_model()
+        log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
+                  len(self.pair_matches), self.num_tracks, len(self.obs_image))
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _reset_model(self) -> None:
+        n = len(self.names)
+        self.registered = np.zeros(n, dtype=bool)
+        self.R = np.tile(np.eye(3), (n, 1, 1))
+        self.t = np.zeros((n, 3))
+        self.track_xyz = np.full((self.num_tracks, 3), np.nan)
+        self.track_valid = np.zeros(self.num_tracks, dtype=bool)
+        self.obs_inlier = np.zeros(len(self.obs_image), dtype=bool)
+        self.num_registered = 0
+        self.last_registered = -1
+        self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
+        self._update_normalised()
+
+    def close_model(self) -> None:
+        self.used |= self.registered
+        self._reset_model()
+
+    def _update_normalised(self) -> None:
+        cams = self.cam_index[self.obs_image]
+        for c, prior in enumerate(self.priors):
+            rows = np.flatnonzero(cams == c)
+            if len(rows):
+                self.obs_norm[rows] = unproject(prior.model, self.params[c], self.obs_px[rows])
+
+    def camera_of(self, i: int):
+        return self.priors[self.cam_index[i]]
+
+    def focal(self, i: int) -> float:
+        c = self.cam_index[i]
+        spec_focal = self.params[c][[0, 1]] if self.priors[c].model in ("PINHOLE", "OPENCV") else self.params[c][[0]]
+        return float(np.mean(spec_focal))
+
+    def norm_of(self, i: int, keypoints: np.ndarray) -> np.ndarray:
+        prior = self.camera_of(i)
+        kp = np.asarray(self.payload.keypoints[i], dtype=np.float64)[keypoints, :2]
+        return unproject(prior.model, self.params[self.cam_index[i]], kp)
+
+    def centers(self, images: np.ndarray) -> np.ndarray:
+        return -np.einsum("nji,nj->ni", self.R[images], self.t[images])
+
+    def reprojection_errors(self, rows: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """Pixel error of each row against the point ``xyz`` (per row); inf behind the camera."""
+        img = self.obs_image[rows]
+        x_cam = np.einsum("nij,nj->ni", self.R[img], xyz) + self.t[img]
+        err = np.full(len(rows), np.inf)
+        cams = self.cam_index[img]
+        for c in np.unique(cams):
+            sel = np.flatnonzero(cams == c)
+            px = project(self.priors[c].model, self.params[c], x_cam[sel])
+            err[sel] = np.linalg.norm(px - self.obs_px[rows[sel]], axis=1)
+        err[~np.isfinite(err) | (x_cam[:, 2] <= 0)] = np.inf
+        return err
+
+    # ------------------------------------------------------------------ initial pair
+    def two_view_score(self, i, j, R, t, matches) -> tuple[int, float]:
+        """Points of a candidate initial pair that pass depth and reprojection checks, and their
+        median triangulation angle (degrees)."""
+        if len(matches) == 0:
+            return 0, 0.0
+        x = np.concatenate([self.norm_of(i, matches[:, 0]), self.norm_of(j, matches[:, 1])])
+        m = len(matches)
+        rot = np.concatenate([np.tile(np.eye(3), (m, 1, 1)), np.tile(R, (m, 1, 1))])
+        tra = np.concatenate([np.zeros((m, 3)), np.tile(t, (m, 1))])
+        order = np.r_[np.arange(m), np.arange(m) + m].reshape(2, m).T.ravel()  # interleave views
+        starts = np.arange(0, 2 * m + 1, 2)
+        X = triangulate_dlt(rot[order], tra[order], x[order], starts)
+        z1 = X[:, 2]
+        z2 = (X @ R.T + t)[:, 2]
+        proj1 = X[:, :2] / z1[:, None]
+        x2c = X @ R.T + t
+        proj2 = x2c[:, :2] / z2[:, None]
+        err = np.maximum(np.linalg.norm(proj1 - x[:m], axis=1) * self.focal(i), np.linalg.norm(proj2 - x[m:], axis=1) * self.focal(j))
+        ok = (z1 > 0) & (z2 > 0) & (err < self.opts.max_reproj_error)
+        if ok.sum() == 0:
+            return 0, 0.0
+        c2 = -R.T @ t
+        r1 = X[ok] / np.linalg.norm(X[ok], axis=1, keepdims=True)
+        r2 = (X[ok] - c2) / np.linalg.norm(X[ok] - c2, axis=1, keepdims=True)
+        angles = np.degrees(np.arccos(np.clip(np.sum(r1 * r2, axis=1), -1, 1)))
+        good = angles >= self.opts.min_tri_angle
+        return int(good.sum()), float(np.median(angles))
+
+    def start_model(self, i: int, j: int, R: np.ndarray, t: np.ndarray) -> None:
+        self.R[i], self.t[i] = np.eye(3), np.zeros(3)
+        self.R[j], self.t[j] = R, t
+        self.registered[[i, j]] = True
+        self.num_registered = 2
+        self.last_registered = j
+        self.triangulate_new(j)
+        log.info("%s: initial pair %s - %s, %d points", self.payload.label, self.names[i], self.names[j], int(self.track_valid.sum()))
+        self.global_ba()
+
+    # ------------------------------------------------------------------ registration
+    def next_image_candidates(self) -> list[int]:
+        """Unregistered images ordered by how many triangulated points they see and how well
+        spread those are (distinct cells of a 16 x 16 grid), retrying failed ones only once
+        they see 20% more points than at their last failure."""
+        scored = []
+        for i in np.flatnonzero(~self.registered & ~self.used):
+            rows = self.image_rows[i]
+            vis = rows[self.track_valid[self.obs_track[rows]]]
+            if len(vis) < self.opts.abs_pose_min_num_inliers:
+                continue
+            if self.failed[i] and len(vis) <= 1.2 * self.fail_visible[i]:
+                continue
+            prior = self.camera_of(i)
+            cells = np.unique((self.obs_px[vis] // [prior.width / 16, prior.height / 16]) @ [1, 16])
+            scored.append((-len(cells), -len(vis), int(i)))
+        scored.sort()
+        return [i for _, _, i in scored]
+
+    def visible_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = self.image_rows[i]
+        rows = rows[self.track_valid[self.obs_track[rows]]]
+        return rows, self.track_xyz[self.obs_track[rows]]
+
+    def note_failure(self, i: int, visible: int) -> None:
+        self.failed[i] += 1
+        self.fail_visible[i] = visible
+
+    def register(self, i: int, R: np.ndarray, t: np.ndarray) -> None:
+        self.R[i], self.t[i] = R, t
+        self.registered[i] = True
+        self.num_registered += 1
+        self.last_registered = i
+        rows, X = self.visible_points(i)
+        self.obs_inlier[rows] = self.reprojection_errors(rows, X) < self.opts.max_reproj_error
+
+    # ------------------------------------------------------------------ triangulation
+    def _triangulate_tracks(self, tracks: np.ndarray) -> int:
+        """(Re)triangulate tracks from their rows in registered images; a row is kept if it
+        reprojects within ``max_reproj_error`` in front of the camera, a point if it keeps two
+        rows and a triangulation angle >= ``min_tri_angle``.  Two passes: all rows, then the
+        inliers of the first pass.  Returns the number of new valid points."""
+        if len(tracks) == 0:
+            return 0
+        rows, owner = _gather(self.starts, tracks)
+        keep = self.registered[self.obs_image[rows]]
+        rows, owner = rows[keep], owner[keep]
+        accepted = np.zeros(len(tracks), dtype=bool)
+        xyz_out = np.full((len(tracks), 3), np.nan)
+        for _ in range(2):  # rows stay grouped by owner (ascending) through every mask below
+            counts = np.bincount(owner, minlength=len(tracks))
+            sel = np.flatnonzero(counts >= 2)
+            if len(sel) == 0:
+                break
+            mask = counts[owner] >= 2
+            r = rows[mask]
+            starts = np.concatenate([[0], np.cumsum(counts[sel])])
+            img = self.obs_image[r]
+            X = triangulate_dlt(self.R[img], self.t[img], self.obs_norm[r], starts)
+            xyz_rows = np.repeat(X, np.diff(starts), axis=0)
+            err = self.reprojection_errors(r, xyz_rows)
+            ok = (err < self.opts.max_reproj_error) & (depths(self.R[img], self.t[img], xyz_rows) > 0)
+            n_ok = np.add.reduceat(ok.astype(np.int64), starts[:-1])
+            angles = max_triangulation_angles(self.centers(img), X, starts)
+            good = (n_ok == np.diff(starts)) & (angles >= self.opts.min_tri_angle) & np.all(np.isfinite(X), axis=1)
+            accepted[sel[good]] = True
+            xyz_out[sel[good]] = X[good]
+            # Second pass: the tracks that failed, from the rows that agreed with them.
+            retry_rows = np.repeat(~good & (n_ok >= 2), np.diff(starts)) & ok
+            rows, owner = r[retry_rows], owner[mask][retry_rows]
+            if len(rows) == 0:
+                break
+        # Apply results.
+        new = tracks[accepted]
+        self.track_xyz[new] = xyz_out[accepted]
+        self.track_valid[new] = True
+        rows_all, owner_all = _gather(self.starts, new)
+        on = self.registered[self.obs_image[rows_all]]
+        rows_all = rows_all[on]
+        err = self.reprojection_errors(rows_all, self.track_xyz[self.obs_track[rows_all]])
+        self.obs_inlier[rows_all] = err < self.opts.max_reproj_error
+        return int(accepted.sum())
+
+    def triangulate_new(self, i: int) -> int:
+        rows = self.image_rows[i]
+        tracks = np.unique(self.obs_track[rows])
+        return self._triangulate_tracks(tracks[~self.track_valid[tracks]])
+
+    def retriangulate(self) -> int:
+        """Triangulate tracks that failed before, and re-admit rows of valid tracks that now
+        reproject well (the model moved)."""
+        reg_rows = np.flatnonzero(self.registered[self.obs_image])
+        tr = self.obs_track[reg_rows]
+        counts = np.bincount(tr, minlength=self.num_tracks)
+        open_tracks = np.flatnonzero((counts >= 2) & ~self.track_valid)
+        added = self._triangulate_tracks(open_tracks)
+        cand = reg_rows[self.track_valid[tr] & ~self.obs_inlier[reg_rows]]
+        if len(cand):
+            err = self.reprojection_errors(cand, self.track_xyz[self.obs_track[cand]])
+            self.obs_inlier[cand[err < self.opts.max_reproj_error]] = True
+        return added
+
+    # ------------------------------------------------------------------ bundle adjustment
+    def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int) -> None:
+        rows, _ = _gather(self.starts, tracks)
+        rows = rows[self.obs_inlier[rows] & self.registered[self.obs_image[rows]]]
+        if len(rows) == 0:
+            return
+        images = np.unique(self.obs_image[rows])
+        fixed = np.setdiff1d(images, free)
+        order = np.concatenate([np.intersect1d(free, images), fixed])
+        img_local = np.full(len(self.names), -1)
+        img_local[order] = np.arange(len(order))
+        point_local = np.full(self.num_tracks, -1)
+        point_local[tracks] = np.arange(len(tracks))
+        cams = np.unique(self.cam_index[order])
+        cam_local = np.full(len(self.priors), -1)
+        cam_local[cams] = np.arange(len(cams))
+        if any(self.priors[c].fixed for c in cams):
+            refine = "none"
+        n_free = len(order) - len(fixed)
+        result = bundle_adjust(
+            [self.priors[c].model for c in cams], [self.params[c] for c in cams], cam_local[self.cam_index[order]],
+            self.R[order], self.t[order], self.track_xyz[tracks],
+            img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows],
+            BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
+                      refine_intrinsics=refine, max_iterations=max_iterations),
+        )
+        self.R[order[:n_free]] = result.rotations[:n_free]
+        self.t[order[:n_free]] = result.translations[:n_free]
+        self.track_xyz[tracks] = result.points
+        if refine != "none":
+            for c, p in zip(cams, result.camera_params):
+                self.params[c] = np.asarray(p, dtype=np.float64)
+            self._update_normalised()
+
+    def local_ba(self, i: int) -> None:
+        """BA of image ``i`` and the registered images sharing most points with it; the other
+        images that see those points are held fixed."""
+        rows = self.image_rows[i]
+        tracks = np.unique(self.obs_track[rows[self.obs_inlier[rows]]])
+        trows, _ = _gather(self.starts, tracks)
+        trows = trows[self.obs_inlier[trows]]
+        neigh = np.bincount(self.obs_image[trows], minlength=len(self.names))
+        neigh[i] = 0
+        best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
+        free = np.concatenate([[i], best[neigh[best] > 0]])
+        local_tracks = np.unique(self.obs_track[np.concatenate([self.image_rows[k] for k in free])])
+        local_tracks = local_tracks[self.track_valid[local_tracks]]
+        self._bundle_adjust(free, local_tracks, "none", 25)
+        self.filter_observations(local_tracks)
+
+    def global_ba(self, final: bool = False) -> None:
+        free = np.flatnonzero(self.registered)
+        tracks = np.flatnonzero(self.track_valid)
+        self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100 if final else 50)
+        self.filter_observations(tracks)
+
+    def filter_observations(self, tracks: np.ndarray) -> None:
+        """Drop rows above ``max_reproj_error`` and points left with < 2 rows or too small an
+        angle (COLMAP's filtering after BA)."""
+        rows, owner = _gather(self.starts, tracks)
+        rows_mask = self.obs_inlier[rows]
+        rows, owner = rows[rows_mask], owner[rows_mask]
+        err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
+        bad = err >= self.opts.max_reproj_error
+        self.obs_inlier[rows[bad]] = False
+        rows, owner = rows[~bad], owner[~bad]
+        counts = np.bincount(owner, minlength=len(tracks))
+        order = np.argsort(owner, kind="stable")
+        rows_sorted = rows[order]
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        img = self.obs_image[rows_sorted]
+        angles = np.zeros(len(tracks))
+        has = counts >= 2
+        if has.any():
+            angles = max_triangulation_angles(self.centers(img), self.track_xyz[tracks], starts)
+        dead = (counts < 2) | (angles < self.opts.min_tri_angle)
+        dead_tracks = tracks[dead]
+        self.track_valid[dead_tracks] = False
+        drows, _ = _gather(self.starts, dead_tracks)
+        self.obs_inlier[drows] = False
+
+    # ------------------------------------------------------------------ output
+    def to_reconstruction(self) -> Reconstruction:
+        recon = Reconstruction()
+        for c, key in enumerate(self.cam_keys):
+            prior = self.priors[c]
+            if np.any(self.registered & (self.cam_index == c)):
+                recon.add_camera(Camera(key, prior.model, prior.width, prior.height, self.params[c].copy()))
+        for i in np.flatnonzero(self.registered):
+            recon.add_image(Image(self.payload.image_ids[i], self.names[i], self.cam_keys[self.cam_index[i]],
+                                  self.R[i].copy(), self.t[i].copy(), np.asarray(self.payload.keypoints[i])[:, :2]))
+        rows = np.flatnonzero(self.obs_inlier & self.registered[self.obs_image] & self.track_valid[self.obs_track])
+        tr = self.obs_track[rows]
+        order = np.argsort(tr, kind="stable")
+        rows, tr = rows[order], tr[order]
+        bounds = np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True])
+        ids = np.asarray(self.payload.image_ids)
+        next_id = 1
+        for s, e in zip(bounds[:-1], bounds[1:]):
+            if e - s < 2:
+                continue
+            r = rows[s:e]
+            track = list(zip(ids[self.obs_image[r]].tolist(), self.obs_kp[r].tolist()))
+            color = np.full(3, 128, np.uint8)
+            if self.payload.colors is not None:
+                color = np.asarray(self.payload.colors[self.obs_image[r[0]]][self.obs_kp[r[0]]], dtype=np.uint8)
+            recon.points3D[next_id] = Point3D(self.track_xyz[tr[s]].copy(), track, color)
+            for (iid, kp) in track:
+                recon.images[iid].point3D_ids[kp] = next_id
+            next_id += 1
+        recon._next_point_id = next_id
+        recon.update_point_errors()
+        return recon
+
+    def log_progress(self, recorder: Recorder) -> None:
+        if not recorder.enabled:
+            return
+        import rerun as rr
+
+        label = self.payload.label
+        recorder.set_time("registration", self.num_registered)
+        valid = np.flatnonzero(self.track_valid)
+        recorder.log(f"clusters/{label}/points", rr.Points3D(self.track_xyz[valid], radii=0.0))
+        i = self.last_registered
+        if i >= 0:
+            prior = self.camera_of(i)
+            K = np.array([[self.focal(i), 0, self.params[self.cam_index[i]][-2 if prior.model == "PINHOLE" else 1]], [0, self.focal(i), 0], [0, 0, 1]])
+            K[:2, 2] = [(prior.width - 1) / 2, (prior.height - 1) / 2]
+            from sfm.geometry import rotation_to_quaternion
+
+            R_wc = self.R[i].T
+            q = rotation_to_quaternion(R_wc)
+            recorder.log(f"clusters/{label}/cams/{self.names[i]}",
+                         rr.Transform3D(translation=-R_wc @ self.t[i], quaternion=[q[1], q[2], q[3], q[0]]),
+                         rr.Pinhole(image_from_camera=K, resolution=[prior.width, prior.height]))

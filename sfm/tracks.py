@@ -1,0 +1,163 @@
+"""Feature tracks from pairwise verified matches (union-find over (image, keypoint) nodes).
+
+Every keypoint of every image is a node; every verified inlier match joins two nodes; a track
+is a connected component with at least two nodes.  A component that holds two keypoints of one
+image is inconsistent: a wrong match chained two physical points.  With long tracks (an object
+seen by 20 images is matched in 190 pairs) almost every component would catch one of the few
+outliers that survive verification, so dropping inconsistent components would drop most
+tracks.  Instead, inconsistent components are rebuilt by a conflict-aware union-find: their
+matches are joined strongest pair first, and a union that would put two keypoints of one image
+into one track is refused (the wrong match loses against the many right ones it contradicts).
+Consistent components (the vast majority of nodes) come from scipy's connected components on
+the sparse match graph, with no Python loop.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """Observations grouped by track: track ``t`` owns rows ``starts[t]:starts[t+1]``.
+
+    image: image index (0..N-1, the caller's numbering) of each observation.
+    keypoint: keypoint index of each observation in its image.
+    starts: (T+1,) offsets.
+    """
+
+    image: np.ndarray
+    keypoint: np.ndarray
+    starts: np.ndarray
+
+    @property
+    def num_tracks(self) -> int:
+        return len(self.starts) - 1
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return np.diff(self.starts)
+
+    def track_of_observation(self) -> np.ndarray:
+        """Track index of each observation row."""
+        return np.repeat(np.arange(self.num_tracks), self.lengths)
+
+
+def build_tracks(num_keypoints: np.ndarray, matches: Iterable[tuple[int, int, np.ndarray]]) -> Tracks:
+    """Tracks from verified matches.
+
+    ``num_keypoints[i]`` is the keypoint count of image ``i``; ``matches`` yields
+    ``(i, j, (M, 2) keypoint index pairs)``.  Tracks are ordered by their smallest node, and
+    observations inside a track by image index, so the result is deterministic.
+    """
+    num_keypoints = np.asarray(num_keypoints, dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(num_keypoints)])
+    rows, cols = [], []
+    # Strongest pairs first: the conflict-aware union below trusts earlier matches.
+    for i, j, m in sorted(matches, key=lambda item: -len(item[2])):
+        m = np.asarray(m, dtype=np.int64).reshape(-1, 2)
+        if len(m) == 0:
+            continue
+        rows.append(offsets[i] + m[:, 0])
+        cols.append(offsets[j] + m[:, 1])
+    n = int(offsets[-1])
+    if not rows:
+        empty = np.zeros(0, dtype=np.int64)
+        return Tracks(empty, empty, np.zeros(1, dtype=np.int64))
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = sp.coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(n, n)).tocsr()
+    _, labels = connected_components(graph, directed=False)
+    node_image = np.repeat(np.arange(len(num_keypoints)), num_keypoints)
+    node_kp = np.arange(n) - offsets[node_image]
+
+    # Only nodes that take part in a match can be in a track of length >= 2.
+    involved = np.zeros(n, dtype=bool)
+    involved[r] = involved[c] = True
+    nodes = np.flatnonzero(involved)
+    lab = labels[nodes]
+    order = np.lexsort((node_image[nodes], lab))
+    nodes, lab = nodes[order], lab[order]
+    bounds = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1], True])
+    sizes = np.diff(bounds)
+    images = node_image[nodes]
+    # A track is inconsistent if two consecutive (image-sorted) observations share an image.
+    same = np.r_[images[1:] == images[:-1], False] & np.r_[lab[1:] == lab[:-1], False]
+    track_idx = np.repeat(np.arange(len(sizes)), sizes)
+    bad_label = np.zeros(len(sizes), dtype=bool)
+    bad_label[track_idx[same]] = True
+    keep_obs = ~bad_label[track_idx]
+    good_images, good_kp = images[keep_obs], node_kp[nodes][keep_obs]
+    good_sizes = sizes[~bad_label]
+    # Rebuild the inconsistent components edge by edge, refusing conflicting unions.
+    bad_nodes = np.zeros(n, dtype=bool)
+    bad_nodes[nodes[~keep_obs]] = True
+    sel = bad_nodes[r]
+    extra = _conflict_free_components(r[sel], c[sel], node_image, _triangle_support(r[sel], c[sel], n))
+    parts_img = [good_images] + [node_image[comp] for comp in extra]
+    parts_kp = [good_kp] + [node_kp[comp] for comp in extra]
+    all_sizes = np.concatenate([good_sizes, [len(comp) for comp in extra]]).astype(np.int64)
+    starts = np.concatenate([[0], np.cumsum(all_sizes)])
+    return Tracks(np.concatenate(parts_img).astype(np.int64), np.concatenate(parts_kp).astype(np.int64), starts.astype(np.int64))
+
+
+def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int) -> np.ndarray:
+    """Number of common neighbours of each edge's ends (triangles through the edge).  A right
+    match inside a track seen by L images is confirmed by up to L - 2 others; a wrong match
+    between two tracks by none."""
+    if len(edges_u) == 0:
+        return np.zeros(0, dtype=np.int64)
+    nodes, inv = np.unique(np.concatenate([edges_u, edges_v]), return_inverse=True)
+    u, v = inv[: len(edges_u)], inv[len(edges_u):]
+    m = len(nodes)
+    adj = sp.coo_matrix((np.ones(2 * len(u), dtype=np.int32), (np.r_[u, v], np.r_[v, u])), shape=(m, m)).tocsr()
+    adj.data[:] = 1  # duplicate matches count once
+    common = (adj @ adj).multiply(adj).tocsr()
+    return np.asarray(common[u, v]).ravel().astype(np.int64)
+
+
+def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_image: np.ndarray,
+                              support: np.ndarray) -> list[np.ndarray]:
+    """Union-find over the given edges, best supported first, refusing any union that would
+    hold two nodes of one image, and any union of two tracks (both of >= 2 nodes) through an
+    edge no third view confirms; returns the components of size >= 2, sorted by image."""
+    order = np.argsort(-support, kind="stable")
+    edges_u, edges_v, support = edges_u[order], edges_v[order], support[order]
+    parent: dict[int, int] = {}
+    members: dict[int, dict[int, int]] = {}  # root -> {image: node}
+
+    def find(x: int) -> int:
+        root = x
+        while parent.get(root, root) != root:
+            root = parent[root]
+        while parent.get(x, x) != root:
+            parent[x], x = root, parent[x]
+        return root
+
+    img = node_image.tolist()
+    for u, v, sup in zip(edges_u.tolist(), edges_v.tolist(), support.tolist()):
+        ru, rv = find(u), find(v)
+        if ru == rv:
+            continue
+        mu = members.get(ru) or {img[u]: u}
+        mv = members.get(rv) or {img[v]: v}
+        if sup == 0 and len(mu) > 1 and len(mv) > 1:
+            continue  # an unconfirmed bridge between two tracks
+        if len(mu) < len(mv):
+            ru, rv, mu, mv = rv, ru, mv, mu
+        if any(k in mu for k in mv):
+            continue  # would put two keypoints of one image in a track
+        mu.update(mv)
+        members[ru] = mu
+        members.pop(rv, None)
+        parent[rv] = ru
+    comps = []
+    for m in members.values():
+        if len(m) >= 2:
+            comps.append(np.array([m[k] for k in sorted(m)], dtype=np.int64))
+    comps.sort(key=lambda a: int(a.min()))
+    return comps

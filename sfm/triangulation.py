@@ -1,0 +1,68 @@
+"""Multi-view triangulation, batched: DLT on normalised coordinates, angle and depth checks.
+
+All functions take a flat list of observations grouped by point (``starts`` offsets, as in
+``sfm.tracks.Tracks``): per observation the camera's ``cam_from_world`` (R, t) and the
+normalised image coordinates of the keypoint (distortion removed).  Points with the same number
+of observations are solved together with one batched SVD, so there is no Python loop over
+points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def triangulate_dlt(rotations: np.ndarray, translations: np.ndarray, xy_norm: np.ndarray,
+                    starts: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of each group of observations ``starts[k]:starts[k+1]``.
+
+    ``rotations`` (O,3,3), ``translations`` (O,3): cam_from_world of each observation's image;
+    ``xy_norm`` (O,2) normalised coordinates.  Returns (P,3); groups with < 2 rows give NaN.
+    Each row contributes ``x * P3 - P1`` and ``y * P3 - P2`` (rows of P = [R | t]), scaled to
+    unit norm so that every view weighs the same.
+    """
+    lengths = np.diff(starts)
+    out = np.full((len(lengths), 3), np.nan)
+    P = np.concatenate([rotations, translations[:, :, None]], axis=2)  # (O,3,4)
+    rows_x = xy_norm[:, 0:1] * P[:, 2] - P[:, 0]
+    rows_y = xy_norm[:, 1:2] * P[:, 2] - P[:, 1]
+    rows_x /= np.linalg.norm(rows_x, axis=1, keepdims=True)
+    rows_y /= np.linalg.norm(rows_y, axis=1, keepdims=True)
+    for n in np.unique(lengths):
+        if n < 2:
+            continue
+        groups = np.flatnonzero(lengths == n)
+        idx = starts[groups][:, None] + np.arange(n)[None, :]  # (G, n)
+        A = np.concatenate([rows_x[idx], rows_y[idx]], axis=1)  # (G, 2n, 4)
+        _, _, vt = np.linalg.svd(A)
+        X = vt[:, -1, :]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[groups] = X[:, :3] / X[:, 3:4]
+    return out
+
+
+def max_triangulation_angles(centers: np.ndarray, points: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Largest angle (degrees) between the viewing rays of each point's observations.
+
+    ``centers`` (O,3) camera centre of each observation, ``points`` (P,3).  Exact for up to
+    ~30 views per point (all pairs, batched by group size).
+    """
+    lengths = np.diff(starts)
+    out = np.zeros(len(lengths))
+    point_of_row = np.repeat(np.arange(len(lengths)), lengths)
+    rays = centers - points[point_of_row]
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
+    for n in np.unique(lengths):
+        if n < 2:
+            continue
+        groups = np.flatnonzero(lengths == n)
+        idx = starts[groups][:, None] + np.arange(n)[None, :]
+        r = rays[idx]  # (G, n, 3)
+        cos = np.einsum("gik,gjk->gij", r, r)
+        out[groups] = np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
+    return out
+
+
+def depths(rotations: np.ndarray, translations: np.ndarray, points_per_row: np.ndarray) -> np.ndarray:
+    """Depth (z in the camera frame) of each observation's point."""
+    return np.einsum("oj,oj->o", rotations[:, 2, :], points_per_row) + translations[:, 2]

@@ -1,0 +1,428 @@
+"""Bundle adjustment (backend/bundle_adjustment.py) and the BAL reader (backend/bal.py).
+
+Synthetic scenes: a ring of cameras looking at a cube of points, every point seen by every
+camera, observations exact or with Gaussian pixel noise; known answers, tight tolerances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from backend.bal import read_bal
+from backend.bundle_adjustment import (
+    BAOptions,
+    bundle_adjust,
+    cam_from_world_from_pose3,
+    ds2_from_params,
+    pose3_from_cam_from_world,
+    project,
+    refine_pose,
+    reprojection_errors,
+)
+
+SIMPLE_RADIAL = ("SIMPLE_RADIAL", np.array([500.0, 320.0, 240.0, -0.05]))
+# a longer focal length: with 500 points and 0.5 px noise, pose and focal noise floors are
+# ~0.02 deg and ~0.03 %, well below the tolerances the noisy tests check
+LONG_FOCAL = ("SIMPLE_RADIAL", np.array([1000.0, 640.0, 480.0, -0.05]))
+EXACT = BAOptions(loss="none", relative_tolerance=1e-12, absolute_tolerance=0.0)
+
+
+def ring_scene(model=SIMPLE_RADIAL, n_images=10, n_points=300, noise=0.0, seed=0) -> dict:
+    """Cameras on a (wavy) ring of radius 6 looking at the origin; points in a 3 m cube."""
+    rng = np.random.default_rng(seed)
+    rotations, translations = [], []
+    for a in np.linspace(0, 2 * np.pi, n_images, endpoint=False):
+        centre = np.array([6 * np.cos(a), 6 * np.sin(a), 0.5 * np.sin(3 * a)])
+        z = -centre / np.linalg.norm(centre)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        rotation = np.stack([x, np.cross(z, x), z])
+        rotations.append(rotation)
+        translations.append(-rotation @ centre)
+    scene = {
+        "camera_models": [model[0]],
+        "camera_params": [model[1].copy()],
+        "image_camera": np.zeros(n_images, int),
+        "rotations": np.array(rotations),
+        "translations": np.array(translations),
+        "points": rng.uniform(-1.5, 1.5, (n_points, 3)),
+        "obs_image": np.repeat(np.arange(n_images), n_points),
+        "obs_point": np.tile(np.arange(n_points), n_images),
+    }
+    xy, _ = project(**scene)
+    scene["obs_xy"] = xy + rng.normal(0.0, noise, xy.shape)
+    return scene
+
+
+def perturb(scene: dict, seed=1, rot_deg=1.0, trans_frac=0.03, point_sigma=0.05, keep=(0,)) -> dict:
+    """Rotate each pose by ~rot_deg, move it by trans_frac of |t|, jitter the points."""
+    rng = np.random.default_rng(seed)
+    rotations, translations = scene["rotations"].copy(), scene["translations"].copy()
+    for i in range(len(rotations)):
+        if i in keep:
+            continue
+        axis = rng.normal(size=3)
+        delta = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.deg2rad(rot_deg))
+        rotations[i] = delta.as_matrix() @ rotations[i]
+        translations[i] += (
+            rng.normal(size=3) / np.sqrt(3) * trans_frac * np.linalg.norm(translations[i])
+        )
+    points = scene["points"] + rng.normal(0.0, point_sigma, scene["points"].shape)
+    return {**scene, "rotations": rotations, "translations": translations, "points": points}
+
+
+def centres(rotations, translations):
+    return -np.einsum("nji,nj->ni", rotations, translations)
+
+
+def align(src: np.ndarray, dst: np.ndarray):
+    """Umeyama similarity (s, Q, c) with dst ≈ s Q src + c."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    u, d, vt = np.linalg.svd(b.T @ a)
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    q = u @ flip @ vt
+    s = np.trace(np.diag(d) @ flip) / (a**2).sum()
+    return s, q, mu_d - s * q @ mu_s
+
+
+def pose_errors(result, truth: dict):
+    """Max rotation error (deg) and centre / point errors (m) after a similarity alignment."""
+    est_c = centres(result.rotations, result.translations)
+    s, q, c = align(est_c, centres(truth["rotations"], truth["translations"]))
+    rel = np.einsum("nij,kj,nlk->nil", result.rotations, q, truth["rotations"])
+    angles = np.rad2deg(Rotation.from_matrix(rel).magnitude())
+    centre_err = np.linalg.norm(
+        s * est_c @ q.T + c - centres(truth["rotations"], truth["translations"]), axis=1
+    )
+    point_err = np.linalg.norm(s * result.points @ q.T + c - truth["points"], axis=1)
+    return angles.max(), centre_err.max(), point_err.max()
+
+
+def test_pose_conversions_round_trip_and_agree_with_gtsam_projection():
+    rng = np.random.default_rng(3)
+    rotation = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    translation = rng.normal(size=3)
+    pose = pose3_from_cam_from_world(rotation, translation)
+    back_r, back_t = cam_from_world_from_pose3(pose)
+    np.testing.assert_allclose(back_r, rotation, atol=1e-14)
+    np.testing.assert_allclose(back_t, translation, atol=1e-14)
+    np.testing.assert_allclose(pose.translation(), -rotation.T @ translation, atol=1e-14)
+    point = rotation.T @ (np.array([0.3, -0.2, 4.0]) - translation)  # in front of the camera
+    cases = {
+        "SIMPLE_RADIAL": (
+            [800.0, 320.5, 240.0, -0.08],
+            gtsam.PinholeCameraCal3Bundler,
+            gtsam.Cal3Bundler(800.0, -0.08, 0.0, 320.5, 240.0),
+        ),
+        "RADIAL": (
+            [800.0, 320.5, 240.0, -0.08, 0.02],
+            gtsam.PinholeCameraCal3Bundler,
+            gtsam.Cal3Bundler(800.0, -0.08, 0.02, 320.5, 240.0),
+        ),
+        "PINHOLE": ([800.0, 790.0, 320.5, 240.0], gtsam.PinholeCameraCal3DS2, None),
+        "OPENCV": (
+            [800.0, 790.0, 320.5, 240.0, -0.08, 0.02, 1e-3, -2e-3],
+            gtsam.PinholeCameraCal3DS2,
+            None,
+        ),
+    }
+    for model, (params, camera_type, cal) in cases.items():
+        cal = cal or gtsam.Cal3DS2(*ds2_from_params(model, np.array(params)))
+        expected = camera_type(pose, cal).project(point)
+        xy, depth = project(
+            [model],
+            [np.array(params)],
+            [0],
+            rotation[None],
+            translation[None],
+            point[None],
+            np.array([0]),
+            np.array([0]),
+        )
+        np.testing.assert_allclose(xy[0], expected, atol=1e-9, err_msg=model)
+        assert depth[0] == pytest.approx(4.0)
+    # COLMAP's formula by hand: pixel = f u (1 + k r2) + cx for SIMPLE_RADIAL
+    u, v = 0.3 / 4.0, -0.2 / 4.0
+    radial = 1 - 0.08 * (u * u + v * v)
+    xy, _ = project(
+        ["SIMPLE_RADIAL"],
+        [np.array(cases["SIMPLE_RADIAL"][0])],
+        [0],
+        rotation[None],
+        translation[None],
+        point[None],
+        np.array([0]),
+        np.array([0]),
+    )
+    np.testing.assert_allclose(
+        xy[0], [800 * u * radial + 320.5, 800 * v * radial + 240.0], atol=1e-9
+    )
+
+
+@pytest.mark.parametrize("ordering", ["metis", "colamd"])
+def test_exact_observations_recover_the_truth(ordering):
+    truth = ring_scene()
+    start = perturb(truth, rot_deg=2.0, trans_frac=0.05)
+    result = bundle_adjust(**start, options=replace(EXACT, ordering=ordering))
+    assert result.success and result.converged
+    assert result.initial_rms > 10.0
+    assert result.final_rms < 1e-8
+    rot_deg, centre_m, point_m = pose_errors(result, truth)
+    assert rot_deg < 1e-8 and centre_m < 1e-8 and point_m < 1e-8
+    # the gauge: the first pose does not move, nor does the distance to the farthest camera
+    np.testing.assert_allclose(result.rotations[0], start["rotations"][0], atol=1e-12)
+    np.testing.assert_allclose(result.translations[0], start["translations"][0], atol=1e-12)
+    c_start = centres(start["rotations"], start["translations"])
+    c_end = centres(result.rotations, result.translations)
+    far = np.argmax(np.linalg.norm(c_start - c_start[0], axis=1))
+    assert np.linalg.norm(c_end[far] - c_end[0]) == pytest.approx(
+        np.linalg.norm(c_start[far] - c_start[0]), rel=1e-9
+    )
+    assert result.num_observations == 3000 and result.iterations > 0 and result.time_s > 0
+
+
+def test_noisy_rms_matches_the_residual_degrees_of_freedom():
+    sigma = 0.5
+    truth = ring_scene(noise=sigma, seed=5)
+    result = bundle_adjust(**perturb(truth), options=replace(EXACT, refine_intrinsics="focal"))
+    n_res = 2 * result.num_observations
+    dof = 6 * 10 + 3 * 300 + 1 - 7  # poses, points, focal, minus the similarity gauge
+    expected = sigma * np.sqrt(2.0) * np.sqrt((n_res - dof) / n_res)
+    assert result.final_rms == pytest.approx(expected, rel=0.05)
+    assert result.final_rms < result.initial_rms
+    rms = np.sqrt(
+        np.mean(
+            reprojection_errors(
+                **{
+                    **truth,
+                    "camera_params": result.camera_params,
+                    "rotations": result.rotations,
+                    "translations": result.translations,
+                    "points": result.points,
+                }
+            )
+            ** 2
+        )
+    )
+    assert rms == pytest.approx(result.final_rms, rel=1e-12)
+
+
+def test_robust_loss_resists_gross_outliers():
+    """5% of the observations moved by 50 px; sigma 0.5 px elsewhere (noise floor ~0.02 deg)."""
+    truth = ring_scene(model=LONG_FOCAL, n_points=500, noise=0.5, seed=7)
+    rng = np.random.default_rng(8)
+    corrupted = truth["obs_xy"].copy()
+    bad = rng.choice(len(corrupted), size=len(corrupted) // 20, replace=False)
+    direction = rng.normal(size=(len(bad), 2))
+    corrupted[bad] += 50.0 * direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    start = perturb({**truth, "obs_xy": corrupted})
+    errors = {}
+    for loss in ("huber", "cauchy", "none"):
+        result = bundle_adjust(
+            **start, options=BAOptions(loss=loss, loss_scale=1.0, refine_intrinsics="none")
+        )
+        errors[loss] = pose_errors(result, truth)[0]
+    assert errors["huber"] < 0.05 and errors["cauchy"] < 0.05
+    assert errors["none"] > 0.2 and errors["none"] > 5 * max(errors["huber"], errors["cauchy"])
+
+
+def test_fixed_poses_and_fixed_intrinsics_are_exactly_unchanged():
+    truth = ring_scene()
+    fixed = (0, 3, 7)
+    start = perturb(truth, keep=fixed)
+    start["camera_params"] = [truth["camera_params"][0] * np.array([1.05, 1, 1, 1])]
+    result = bundle_adjust(**start, options=BAOptions(fixed_poses=fixed, refine_intrinsics="none"))
+    for i in fixed:
+        assert np.array_equal(result.rotations[i], start["rotations"][i])
+        assert np.array_equal(result.translations[i], start["translations"][i])
+    assert not np.allclose(result.rotations[1], start["rotations"][1])
+    assert np.array_equal(result.camera_params[0], start["camera_params"][0])
+    assert result.final_rms < result.initial_rms
+
+
+def test_fixed_poses_with_exact_data_give_the_truth_without_alignment():
+    truth = ring_scene()
+    result = bundle_adjust(
+        **perturb(truth, keep=(0, 5)), options=replace(EXACT, fixed_poses=(0, 5))
+    )
+    np.testing.assert_allclose(result.rotations, truth["rotations"], atol=1e-9)
+    np.testing.assert_allclose(result.translations, truth["translations"], atol=1e-9)
+    np.testing.assert_allclose(result.points, truth["points"], atol=1e-9)
+
+
+def test_one_fixed_pose_plus_the_scale_prior_fix_the_gauge():
+    truth = ring_scene()
+    start = perturb(truth, keep=(2,))
+    result = bundle_adjust(**start, options=replace(EXACT, fixed_poses=(2,)))
+    assert np.array_equal(result.rotations[2], truth["rotations"][2])
+    c_start = centres(start["rotations"], start["translations"])
+    c_end = centres(result.rotations, result.translations)
+    far = np.argmax(np.linalg.norm(c_start - c_start[2], axis=1))
+    assert np.linalg.norm(c_end[far] - c_end[2]) == pytest.approx(
+        np.linalg.norm(c_start[far] - c_start[2]), rel=1e-9
+    )
+    assert max(pose_errors(result, truth)) < 1e-8
+
+
+def test_reprojection_errors_flag_points_behind_the_camera():
+    scene = ring_scene(n_images=2, n_points=5)
+    scene["points"][3] = 2.0 * centres(scene["rotations"], scene["translations"])[0]  # behind 0
+    errors = reprojection_errors(**scene)
+    behind = (scene["obs_image"] == 0) & (scene["obs_point"] == 3)
+    assert np.isinf(errors[behind]).all() and np.isfinite(errors[~behind]).all()
+
+
+def test_focal_refinement_recovers_a_five_percent_error():
+    truth = ring_scene(model=LONG_FOCAL, n_points=500, noise=0.5, seed=11)
+    start = perturb(truth)
+    start["camera_params"] = [truth["camera_params"][0] * np.array([1.05, 1, 1, 1])]
+    result = bundle_adjust(**start, options=BAOptions(refine_intrinsics="focal"))
+    f_est, f_true = result.camera_params[0][0], truth["camera_params"][0][0]
+    assert abs(f_est / f_true - 1) < 1e-3
+    # everything but the focal length is held exactly
+    np.testing.assert_array_equal(result.camera_params[0][1:], start["camera_params"][0][1:])
+
+
+def test_radial_distortion_is_recovered():
+    truth = ring_scene(model=("SIMPLE_RADIAL", np.array([500.0, 320.0, 240.0, -0.12])))
+    start = perturb(truth)
+    start["camera_params"] = [np.array([480.0, 320.0, 240.0, 0.0])]
+    result = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal_radial"))
+    np.testing.assert_allclose(
+        result.camera_params[0], truth["camera_params"][0], rtol=1e-9, atol=1e-9
+    )
+    assert result.final_rms < 1e-8
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        ("SIMPLE_PINHOLE", np.array([500.0, 320.0, 240.0])),
+        ("PINHOLE", np.array([500.0, 510.0, 320.0, 240.0])),
+        ("RADIAL", np.array([500.0, 320.0, 240.0, -0.1, 0.02])),
+        ("OPENCV", np.array([500.0, 505.0, 320.0, 240.0, -0.1, 0.02, 1e-3, -1e-3])),
+    ],
+)
+def test_all_intrinsics_including_principal_point(model):
+    truth = ring_scene(model=model)
+    start = perturb(truth)
+    shifted = truth["camera_params"][0].copy()
+    n_focal = 2 if model[0] in ("PINHOLE", "OPENCV") else 1
+    shifted[:n_focal] *= 0.97
+    shifted[n_focal : n_focal + 2] += [4.0, -3.0]
+    start["camera_params"] = [shifted]
+    result = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="all"))
+    np.testing.assert_allclose(
+        result.camera_params[0], truth["camera_params"][0], rtol=1e-8, atol=1e-8
+    )
+
+
+def test_camera_groups_share_intrinsics():
+    truth = ring_scene()
+    truth["camera_models"] = ["SIMPLE_RADIAL", "PINHOLE"]
+    truth["camera_params"] = [
+        np.array([500.0, 320.0, 240.0, -0.05]),
+        np.array([620.0, 600.0, 330.0, 250.0]),
+    ]
+    truth["image_camera"] = np.arange(10) % 2
+    truth["obs_xy"] = project(**{k: v for k, v in truth.items() if k != "obs_xy"})[0]
+    start = perturb(truth)
+    start["camera_params"] = [
+        truth["camera_params"][0] * [0.96, 1, 1, 0],
+        truth["camera_params"][1] * [1.03, 0.98, 1, 1],
+    ]
+    result = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal_radial"))
+    for got, want in zip(result.camera_params, truth["camera_params"]):
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+
+
+def test_refine_pose_recovers_a_perturbed_pose():
+    truth = ring_scene(n_points=200)
+    image = 4
+    rows = truth["obs_image"] == image
+    model, params = truth["camera_models"][0], truth["camera_params"][0]
+    start = perturb(truth, rot_deg=2.0, trans_frac=0.05, keep=())
+    result = refine_pose(
+        model,
+        params,
+        start["rotations"][image],
+        start["translations"][image],
+        truth["points"][truth["obs_point"][rows]],
+        truth["obs_xy"][rows],
+    )
+    assert result.success and result.initial_rms > 5 and result.final_rms < 1e-8
+    np.testing.assert_allclose(result.rotation, truth["rotations"][image], atol=1e-10)
+    np.testing.assert_allclose(result.translation, truth["translations"][image], atol=1e-9)
+
+
+def test_refine_pose_with_noise_and_outliers():
+    truth = ring_scene(n_points=300, noise=0.5, seed=21)
+    rows = np.flatnonzero(truth["obs_image"] == 2)
+    xy = truth["obs_xy"][rows].copy()
+    xy[::10] += 40.0
+    start = perturb(truth, keep=())
+    result = refine_pose(
+        "SIMPLE_RADIAL",
+        truth["camera_params"][0],
+        start["rotations"][2],
+        start["translations"][2],
+        truth["points"][truth["obs_point"][rows]],
+        xy,
+        loss="cauchy",
+    )
+    angle = Rotation.from_matrix(result.rotation @ truth["rotations"][2].T).magnitude()
+    assert np.rad2deg(angle) < 0.05
+
+
+def test_bad_options_raise():
+    scene = ring_scene(n_images=3, n_points=20)
+    with pytest.raises(ValueError, match="loss"):
+        bundle_adjust(**scene, options=BAOptions(loss="l1"))
+    with pytest.raises(ValueError, match="refine_intrinsics"):
+        bundle_adjust(**scene, options=BAOptions(refine_intrinsics="everything"))
+    with pytest.raises(ValueError, match="observation"):
+        bundle_adjust(**{**scene, "obs_image": scene["obs_image"][:0]})
+    with pytest.raises(ValueError, match="not supported"):
+        bundle_adjust(**{**scene, "camera_models": ["FISHEYE"]})
+
+
+def test_bal_reader_agrees_with_gtsam(shared_data):
+    path = shared_data / "bal_small" / "door_initialization.bal"
+    problem = read_bal(path)
+    assert (
+        len(problem.rotations) == 12 and len(problem.points) == 2140 and len(problem.obs_xy) == 4519
+    )
+    sfm_data = gtsam.SfmData.FromBalFile(str(path))
+    for i in (0, 11):
+        rotation, translation = cam_from_world_from_pose3(sfm_data.camera(i).pose())
+        np.testing.assert_allclose(problem.rotations[i], rotation, atol=1e-12)
+        np.testing.assert_allclose(problem.translations[i], translation, atol=1e-12)
+        assert problem.camera_params[i][0] == pytest.approx(sfm_data.camera(i).calibration().fx())
+    track = sfm_data.track(5)
+    np.testing.assert_allclose(problem.points[5], track.point3())
+    cam, xy = track.measurement(0)
+    rows = np.flatnonzero((problem.obs_point == 5) & (problem.obs_image == cam))
+    np.testing.assert_allclose(problem.obs_xy[rows[0]], xy)
+
+
+@pytest.mark.parametrize(
+    "name, refine, initial, bound",
+    [
+        ("door_initialization.bal", "focal_radial", 2.5786, 0.47),
+        ("dubrovnik-3-7-pre.txt", "none", 17.0579, 0.52),
+    ],
+)
+def test_bal_problems_converge(shared_data, name, refine, initial, bound):
+    problem = read_bal(shared_data / "bal_small" / name)
+    result = bundle_adjust(
+        **problem.arrays(), options=BAOptions(loss="none", refine_intrinsics=refine)
+    )
+    assert result.success
+    assert result.initial_rms == pytest.approx(initial, abs=1e-4)
+    assert result.final_rms < bound < result.initial_rms

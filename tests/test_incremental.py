@@ -1,0 +1,52 @@
+"""Incremental SfM on synthetic databases with exact ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sfm.cli import main
+from sfm.colmap_io import read_model
+from sfm.evaluation import evaluate, read_gt_table
+from sfm.mapper_input import MapperOptions
+from sfm.mapping import load_payloads, run_map
+from sfm.incremental import reconstruct_incremental
+from sfm.synthetic import SynthOptions, run_synth
+
+
+def test_orbit_with_outliers_is_fully_and_accurately_registered(tmp_path):
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=24, observations_per_image=800, outlier_ratio=0.2, seed=0))
+    assert main(["map", "--workspace", str(tmp_path)]) == 0
+    model = read_model(tmp_path / "sparse" / "0")
+    result = evaluate(model, read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
+    assert result.num_registered == 24
+    assert result.median_rotation_error_deg < 0.05
+    assert result.auc[1] > 0.9
+    # ERROR column = each point's mean reprojection error; near the 0.5 px noise.
+    errors = np.array([p.error for p in model.points3D.values()])
+    assert 0.2 < errors.mean() < 1.0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["registered"] == 24 and report["images"] == 24
+    assert not (tmp_path / "sparse" / "1").exists()
+
+
+def test_two_unrelated_scenes_give_two_models(tmp_path):
+    run_synth(tmp_path, SynthOptions(scene="aerial", num_images=20, observations_per_image=500, seed=1))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    # Cut all pairs between the first and the last ten images: two disconnected scenes.
+    first = set(range(10))
+    pairs = [p for p in payload.pairs if (p[0] in first) == (p[1] in first)]
+    split = type(payload)(**{**payload.__dict__, "pairs": pairs})
+    models = reconstruct_incremental(split, MapperOptions())
+    assert len(models) == 2
+    assert sorted(len(m.images) for m in models) == [10, 10]
+
+
+def test_no_pair_means_no_model(tmp_path):
+    run_synth(tmp_path, SynthOptions(num_images=4, observations_per_image=100, seed=3))
+    from sfm.errors import NoModelError
+
+    with pytest.raises(NoModelError):
+        run_map(tmp_path, MapperOptions(min_num_matches=100000))
