@@ -81,8 +81,10 @@ class BAOptions:
         (tolerances on the decrease of the total cost 0.5 * sum rho(err²); 1e-5 is GTSAM's
         default: robust losses converge linearly in the tail, where tighter tolerances buy
         hundredths of a pixel for tens of iterations).
-    ordering: "metis" (default) or "colamd" elimination ordering. (GTSAM 4.3's Schur-mode
-        SfmLevenbergMarquardtOptimizer was 1.7-1.8x slower on 100- and 400-image problems.)
+    ordering: "points_first" (default: every point, then calibrations and poses, the Schur
+        ordering of BA; ~20% faster than METIS on a 100-image problem and no partitioning
+        cost), "metis" or "colamd". (GTSAM 4.3's Schur-mode SfmLevenbergMarquardtOptimizer was
+        1.7-1.8x slower on 100- and 400-image problems.)
     verbose: log every LM iteration at INFO (otherwise DEBUG).
     """
 
@@ -94,7 +96,7 @@ class BAOptions:
     max_iterations: int = 100
     relative_tolerance: float = 1e-5
     absolute_tolerance: float = 1e-6
-    ordering: str = "metis"
+    ordering: str = "points_first"
     verbose: bool = False
 
 
@@ -325,10 +327,19 @@ def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions) 
 
 def _optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtOptimizer:
     """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log."""
-    if options.ordering not in ("metis", "colamd"):
-        raise ValueError(f"unknown ordering {options.ordering!r}; use 'metis' or 'colamd'")
+    if options.ordering not in ("points_first", "metis", "colamd"):
+        raise ValueError(f"unknown ordering {options.ordering!r}; use 'points_first', 'metis' or 'colamd'")
     params = gtsam.LevenbergMarquardtParams()
-    params.setOrderingType(options.ordering.upper())
+    if options.ordering == "points_first":
+        # The classic BA ordering: eliminating every point first leaves the reduced camera
+        # system (a Schur complement); no graph partitioning to compute.
+        keys = list(values.keys())
+        ordering = gtsam.Ordering()
+        for key in sorted(keys, key=lambda k: gtsam.Symbol(k).chr() != ord("l")):
+            ordering.push_back(key)
+        params.setOrdering(ordering)
+    else:
+        params.setOrderingType(options.ordering.upper())
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(options.relative_tolerance)
     params.setAbsoluteErrorTol(options.absolute_tolerance)

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm.alignment import align_centers, default_alignment_threshold, is_collinear, scene_extent
+from sfm.alignment import (align_centers, default_alignment_threshold, is_collinear,
+                           refine_rotation_with_orientations, scene_extent)
 from sfm.geometry import Sim3, rotation_to_quaternion
 from sfm.ground_truth import GTPose, gt_from_reconstruction, read_gt_table  # noqa: F401
 from sfm.model import Reconstruction
@@ -340,6 +341,8 @@ def evaluate(
         threshold = float(alignment_threshold)
     reg_idx = np.flatnonzero(registered)
     sim, inliers = align_centers(est_c[reg_idx], gt_c[reg_idx], threshold=threshold, seed=seed)
+    if sim is not None:
+        sim = refine_rotation_with_orientations(sim, est_rot[reg_idx], gt_rot[reg_idx], est_c[reg_idx], gt_c[reg_idx], inliers)
     rot_errors: dict[str, float] = {}
     center_errors: dict[str, float] = {}
     degenerate = False

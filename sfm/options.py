@@ -52,6 +52,8 @@ def add_options(parser: argparse.ArgumentParser, cls: type, flags: dict[str, str
         if f.name in skip or f.name.startswith("_"):
             continue
         flag = "--" + flags.get(f.name, f.name.replace("_", "-"))
+        if flag in parser._option_string_actions:  # shared by several stages (e.g. --seed)
+            continue
         kind = _base_type(hints[f.name])
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
         text = helps.get(f.name, "").replace("%", "%%")
@@ -59,7 +61,7 @@ def add_options(parser: argparse.ArgumentParser, cls: type, flags: dict[str, str
             group.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=default, help=text)
             continue
         choices = None
-        m = re.search(r"one of ([a-z0-9_|]+)", text)
+        m = re.search(r"one of ([a-z0-9_|-]+)", text)
         if m:
             choices = m.group(1).split("|")
         group.add_argument(flag, dest=f.name, type=kind, default=default, choices=choices,
