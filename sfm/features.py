@@ -1,0 +1,499 @@
+"""The ``extract`` stage: SIFT keypoints and RootSIFT descriptors of every image, into database.db.
+
+DESIGN.md, "The algorithm", step 1. :func:`run_extract` is the stage; :func:`extract_features`
+(decoded image in, arrays out, no I/O) is the library function under it.
+
+Conventions:
+
+- Detector: OpenCV SIFT (``cv2.SIFT_create``) with OpenCV's thresholds: contrastThreshold 0.04
+  (a DoG extremum is kept when ``|D| >= 0.04 / 3`` on a [0, 1] image; COLMAP's default peak
+  threshold is half that, 0.02 / 3: it finds more, weaker keypoints in low-texture images, but
+  with the 8192 cap both keep the strongest ones in a textured photo) and edgeThreshold 10
+  (COLMAP's too). Both are options. ``enable_precise_upscale=True``: OpenCV's default doubling
+  of the image for the first octave maps upsampled pixel i to i / 2 instead of i / 2 - 0.25,
+  which biases every keypoint by +0.25 px in x and y; the precise upscale has no such bias, so
+  keypoints are in OpenCV's pixel-centre convention (a test rotates an image by 90 degrees and
+  finds 90% of the keypoints within 0.3 px of where they must be).
+- Images whose longer side exceeds ``max_image_size`` are shrunk with ``cv2.INTER_AREA`` before
+  SIFT (SIFT never sees the full image); keypoints are mapped back to full-resolution pixels with
+  OpenCV's pixel-centre convention ``x = (x_small + 0.5) * sx - 0.5`` (likewise y) and their
+  scale multiplied by the mean of ``sx, sy``.
+- At most ``max_num_features`` keypoints per image: the strongest by SIFT response, stored in
+  decreasing response order (OpenCV's own ``nfeatures`` can keep a few more on ties).
+- Keypoints are float32 rows ``(x, y, scale, orientation)``: the 4-column layout COLMAP reads.
+  ``scale = KeyPoint.size / 2`` (OpenCV's size is the diameter ``2 sigma`` of the keypoint's
+  Gaussian scale; COLMAP's and VLFeat's scale is ``sigma``), ``orientation =
+  radians(KeyPoint.angle)`` in [0, 2 pi): OpenCV's angle is the dominant gradient direction in
+  image axes (x right, y down), which is COLMAP's convention too. x, y use OpenCV's pixel centres
+  in memory; ``Database.write_keypoints`` shifts them to COLMAP's (+0.5).
+- Descriptors: RootSIFT (Arandjelovic & Zisserman 2012; COLMAP's default ``L1_ROOT``): each
+  128-vector is L1-normalised and square-rooted (which gives unit L2 norm), then quantised as
+  COLMAP does: ``uint8(min(round(512 * d), 255))``. Dividing the stored bytes by 512 gives the
+  unit vector back (up to rounding and the rare clipping). With ``root_sift=False`` the vector
+  is L2-normalised instead, then quantised the same way.
+- Images, EXIF and grey levels: ``sfm.images``; cameras and ``--intrinsics``: ``sfm.intrinsics``.
+- Bad files (empty, truncated, not an image) are skipped with one warning line each and listed
+  in the result; the run goes on. Exact duplicate files are both kept, as COLMAP keeps them,
+  with a warning (they make a zero-baseline pair that verification sees as degenerate).
+
+Resuming: images that already have keypoints in ``WORK/database.db`` are skipped. Each image is
+written (camera if new, image row, keypoints, descriptors) in one transaction as soon as its
+worker returns it, so an interrupted run loses only the images in flight. ``WORK/extract.json``
+(written atomically) maps each shared camera's group key to its camera id and records the
+options, so a resumed run puts new images on the cameras it made before; COLMAP's tables hold
+nothing extra.
+
+Parallelism: a ``ProcessPoolExecutor`` with the ``spawn`` start method (safe with OpenCV's
+threads; a worker killed by the kernel raises ``BrokenProcessPool`` instead of hanging as
+``multiprocessing.Pool`` would); workers decode and run SIFT with ``cv2.setNumThreads(1)`` and
+return numpy arrays; only the parent writes the database. ``num_workers = 1`` runs in-process.
+Spawn re-imports the caller's main module, so a script that calls :func:`run_extract` with
+several workers needs the usual ``if __name__ == "__main__":`` guard (the CLI has it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from sfm.database import Database
+from sfm.errors import InputError
+from sfm.images import BadImageError, ImageInfo, downscale, find_images, probe_image, read_gray
+from sfm.intrinsics import (
+    CAMERA_MODES,
+    CameraSpec,
+    IntrinsicsTable,
+    assign_cameras,
+    read_intrinsics,
+    warn_unused_lines,
+)
+from sfm.workspace import DATABASE, read_json, write_json_atomic
+
+logger = logging.getLogger(__name__)
+
+SIDECAR = "extract.json"
+_FEATURE_OPTIONS = ("max_image_size", "max_num_features", "root_sift", "contrast_threshold",
+                    "edge_threshold")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ExtractOptions:
+    """Options of ``graphsfm extract`` (defaults in the fields).
+
+    max_image_size: images whose longer side is larger are shrunk to it (INTER_AREA) before
+        SIFT; keypoints are still in full-resolution pixels.
+    max_num_features: keypoints kept per image, the strongest by SIFT response.
+    camera_mode: one of auto|single|per-folder|per-image. auto: one camera per image size, EXIF
+        make/model and EXIF focal; single: one camera for all images (they must have one size);
+        per-folder: one camera per sub-folder; per-image: one camera per image.
+    intrinsics: file of 'IMAGE_NAME WIDTH HEIGHT FX FY CX CY [...]' lines (name '*': every
+        image; OpenCV pixel centres); the images it names get PINHOLE cameras with these values.
+    num_workers: processes that decode images and run SIFT (0: one per core, fewer when memory
+        is short: SIFT needs about 1.7 GB per worker at 3200 px; 1: in-process).
+    root_sift: RootSIFT descriptors (L1-normalise, square root), else L2-normalised SIFT.
+    contrast_threshold: OpenCV SIFT contrastThreshold (DoG peaks below it / 3 are dropped;
+        COLMAP's peak threshold corresponds to 0.02).
+    edge_threshold: OpenCV SIFT edgeThreshold (curvature ratio limit; COLMAP's is 10 too).
+    """
+
+    max_image_size: int = 3200
+    max_num_features: int = 8192
+    camera_mode: str = "auto"
+    intrinsics: Path | None = None
+    num_workers: int = 0
+    root_sift: bool = True
+    contrast_threshold: float = 0.04
+    edge_threshold: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.camera_mode not in CAMERA_MODES:
+            raise ValueError(
+                f"camera_mode must be one of {'|'.join(CAMERA_MODES)}, got {self.camera_mode!r}"
+            )
+        if self.max_image_size < 16:
+            raise ValueError(
+                f"max_image_size must be at least 16 pixels, got {self.max_image_size}"
+            )
+        if self.max_num_features < 1:
+            raise ValueError(f"max_num_features must be positive, got {self.max_num_features}")
+        if self.num_workers < 0:
+            raise ValueError(f"num_workers must be >= 0 (0: all cores), got {self.num_workers}")
+        if not (self.contrast_threshold > 0 and self.edge_threshold > 0):
+            raise ValueError("contrast_threshold and edge_threshold must be positive")
+        if self.intrinsics is not None and not isinstance(self.intrinsics, Path):
+            object.__setattr__(self, "intrinsics", Path(self.intrinsics))
+
+
+@dataclass(frozen=True)
+class ExtractResult:
+    """What :func:`run_extract` did.
+
+    num_images: image files found in the folder; num_extracted: images extracted by this run;
+    num_skipped_existing: images that already had features; bad_files: (name, reason) of the
+    files skipped as unusable; num_cameras: cameras in the database; mean_keypoints: mean number
+    of keypoints over the images in the database; time_s: wall time of the run.
+    """
+
+    num_images: int
+    num_extracted: int
+    num_skipped_existing: int
+    bad_files: list[tuple[str, str]]
+    num_cameras: int
+    mean_keypoints: float
+    time_s: float
+
+
+# ----------------------------------------------------------------------------- library
+def quantize_descriptors(descriptors: np.ndarray, root_sift: bool = True) -> np.ndarray:
+    """(N, 128) uint8: RootSIFT (L1-normalise, sqrt) or L2-normalised, times 512, rounded,
+    clipped to 255 (COLMAP's ``FeatureDescriptorsToUnsignedByte``)."""
+    d = np.maximum(np.asarray(descriptors, np.float64).reshape(-1, 128), 0.0)
+    if root_sift:
+        l1 = d.sum(axis=1, keepdims=True)
+        d = np.sqrt(d / np.where(l1 > 0, l1, 1.0))
+    else:
+        l2 = np.linalg.norm(d, axis=1, keepdims=True)
+        d = d / np.where(l2 > 0, l2, 1.0)
+    return np.minimum(np.round(512.0 * d), 255.0).astype(np.uint8)
+
+
+def detect_sift(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT on an 8-bit grey image as given: ``(keypoints (N, 4) float32 x, y, scale,
+    orientation; descriptors (N, 128) uint8)``, strongest first, N <= max_num_features."""
+    sift = cv2.SIFT_create(
+        nfeatures=options.max_num_features, contrastThreshold=options.contrast_threshold,
+        edgeThreshold=options.edge_threshold, enable_precise_upscale=True,
+    )  # fmt: skip
+    kps, desc = sift.detectAndCompute(gray, None)
+    if not kps or desc is None:
+        return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
+    rows = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in kps], np.float64)
+    order = np.argsort(-rows[:, 4], kind="stable")[: options.max_num_features]
+    rows = rows[order]
+    keypoints = np.column_stack(
+        [rows[:, 0], rows[:, 1], rows[:, 2] / 2.0, np.deg2rad(np.mod(rows[:, 3], 360.0))]
+    ).astype(np.float32)
+    return keypoints, quantize_descriptors(desc[order], options.root_sift)
+
+
+def extract_features(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`detect_sift` on ``gray`` shrunk to ``max_image_size``, keypoints in ``gray``'s
+    pixels (OpenCV convention: ``x = (x_small + 0.5) * sx - 0.5``, scale times mean(sx, sy))."""
+    small, sx, sy = downscale(gray, options.max_image_size)
+    keypoints, descriptors = detect_sift(small, options)
+    if (sx, sy) != (1.0, 1.0):
+        keypoints[:, 0] = (keypoints[:, 0] + 0.5) * sx - 0.5
+        keypoints[:, 1] = (keypoints[:, 1] + 0.5) * sy - 0.5
+        keypoints[:, 2] *= (sx + sy) / 2.0
+    return keypoints, descriptors
+
+
+# ----------------------------------------------------------------------------- workers
+@dataclass(frozen=True)
+class _Job:
+    name: str
+    path: str
+    options: ExtractOptions
+
+
+@dataclass(frozen=True)
+class _Extracted:
+    name: str
+    error: str = ""
+    info: ImageInfo | None = None
+    keypoints: np.ndarray | None = None
+    descriptors: np.ndarray | None = None
+    digest: str = ""
+
+
+def _init_worker() -> None:
+    cv2.setNumThreads(1)  # one image per process; OpenCV's own threads would oversubscribe
+
+
+def _probe_job(job: _Job) -> tuple[str, ImageInfo | None, str]:
+    try:
+        return job.name, probe_image(Path(job.path)), ""
+    except BadImageError as exc:
+        return job.name, None, str(exc)
+
+
+def _extract_job(job: _Job) -> _Extracted:
+    try:
+        data = Path(job.path).read_bytes()
+        gray, info = read_gray(data)
+        keypoints, descriptors = extract_features(gray, job.options)
+    except BadImageError as exc:
+        return _Extracted(job.name, str(exc))
+    except OSError as exc:
+        return _Extracted(job.name, f"cannot read: {exc.strerror or exc}")
+    except MemoryError:
+        return _Extracted(job.name, "out of memory")
+    except cv2.error as exc:
+        last_line = (str(exc).strip().splitlines() or ["unknown"])[-1]
+        return _Extracted(job.name, f"OpenCV error: {last_line}")
+    digest = hashlib.blake2b(data, digest_size=16).hexdigest()
+    return _Extracted(job.name, "", info, keypoints, descriptors, digest)
+
+
+Mapper = Callable[[Callable[[Any], Any], Iterable[Any]], Iterator[Any]]
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _auto_workers(options: ExtractOptions) -> int:
+    """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
+    Gaussian and DoG pyramids of the 2x-upsampled image, about 230 bytes per input pixel
+    (1.7 GB for a 3200 x 2400 image), plus the decoded full-size image."""
+    cores = (
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    )
+    available = _available_memory()
+    if available is None:
+        return cores
+    per_worker = 230 * 0.75 * options.max_image_size**2 + 300e6
+    fits = max(1, int(0.8 * available // per_worker))
+    if fits < cores:
+        logger.info("extract: %d workers instead of %d, to fit in %.1f GB of memory", fits, cores,
+                    available / 1e9)  # fmt: skip
+    return min(cores, fits)
+
+
+@contextmanager
+def _mapper(num_workers: int, num_jobs: int) -> Iterator[Mapper]:
+    """An ordered ``map`` over a spawn process pool, or the built-in map for one worker."""
+    workers = min(num_workers, num_jobs)
+    if workers <= 1:
+        yield lambda func, items: map(func, items)
+        return
+    ctx = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
+    ok = False
+    try:
+        yield lambda func, items: pool.map(func, items)
+        ok = True
+    except BrokenProcessPool as exc:
+        raise RuntimeError(
+            "a feature-extraction worker died (out of memory on a large image?); rerun to resume, "
+            "maybe with fewer workers or a smaller max_image_size"
+        ) from exc
+    finally:
+        pool.shutdown(wait=ok, cancel_futures=True)
+
+
+# ----------------------------------------------------------------------------- database side
+def _options_json(options: ExtractOptions) -> dict[str, Any]:
+    d = dataclasses.asdict(options)
+    d["intrinsics"] = None if options.intrinsics is None else str(options.intrinsics)
+    return d
+
+
+class _Writer:
+    """Writes extracted images into the database and keeps ``extract.json`` in step."""
+
+    def __init__(self, db: Database, sidecar: Path, image_dir: Path, options: ExtractOptions):
+        self.db, self.sidecar, self.options = db, sidecar, options
+        self.image_dir = str(image_dir.resolve())
+        self.image_ids = db.image_id_by_name()
+        self.image_cameras = {r.name: r.camera_id for r in db.read_images().values()}
+        self.cameras = db.read_cameras()
+        self.next_camera_id = max(self.cameras, default=0) + 1
+        data = self._load() if self.image_ids else {}  # a new database: forget old cameras
+        cameras = data.get("cameras")
+        self.camera_ids = {
+            str(k): v for k, v in (cameras.items() if isinstance(cameras, dict) else ())
+            if isinstance(v, int) and v in self.cameras  # a kill may leave ids never committed
+        }  # fmt: skip
+        self.saved_options = data.get("options")
+
+    def _load(self) -> dict:
+        if not self.sidecar.exists():
+            return {}
+        try:
+            data = read_json(self.sidecar)
+            return data if isinstance(data, dict) else {}
+        except (OSError, ValueError) as exc:
+            logger.warning("ignoring unreadable %s: %s", self.sidecar, exc)
+            return {}
+
+    def save(self) -> None:
+        write_json_atomic(self.sidecar, {
+            "version": 1, "image_dir": self.image_dir, "options": _options_json(self.options),
+            "cameras": self.camera_ids,
+        })  # fmt: skip
+
+    def names_with_keypoints(self) -> set[str]:
+        with_kp = self.db.images_with_keypoints()
+        return {n for n, i in self.image_ids.items() if i in with_kp}
+
+    def warn_changed_options(self) -> None:
+        if not isinstance(self.saved_options, dict):
+            return
+        now = _options_json(self.options)
+        changed = [f"{k}={self.saved_options[k]!r} (now {now[k]!r})" for k in _FEATURE_OPTIONS
+                   if k in self.saved_options and self.saved_options[k] != now[k]]  # fmt: skip
+        if changed:
+            logger.warning(
+                "images already in %s keep features extracted with %s; delete the database to "
+                "extract them again", self.db.path, ", ".join(changed),
+            )  # fmt: skip
+
+    def check_reused(self, specs: dict[str, CameraSpec]) -> None:
+        """A camera reused from an earlier run must have the size of its new images."""
+        for name, spec in specs.items():
+            camera_id = self.camera_ids.get(spec.key)
+            cam = self.cameras.get(camera_id) if camera_id is not None else None
+            if cam is not None and (cam.width, cam.height) != (spec.width, spec.height):
+                raise InputError(
+                    f"{name} is {spec.width}x{spec.height} but camera {camera_id}, made for its "
+                    f"group by an earlier run, is {cam.width}x{cam.height}; use camera_mode auto"
+                )
+
+    def _camera_id(self, name: str, spec: CameraSpec) -> int:
+        if name in self.image_cameras:  # an image row without keypoints: keep its camera
+            return self.image_cameras[name]
+        if spec.key in self.camera_ids:
+            return self.camera_ids[spec.key]
+        camera_id = self.next_camera_id
+        self.next_camera_id += 1
+        if spec.shared:  # record before the commit: a kill in between leaves a dangling entry,
+            self.camera_ids[spec.key] = camera_id  # which the next run drops, never a lost key
+            self.save()
+        self.db.add_camera(spec.model, spec.width, spec.height, spec.params,
+                           spec.prior_focal_length, camera_id=camera_id)  # fmt: skip
+        return camera_id
+
+    def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray):
+        with self.db.transaction():
+            camera_id = self._camera_id(name, spec)
+            image_id = self.image_ids.get(name)
+            if image_id is None:
+                image_id = self.db.add_image(name, camera_id)
+            self.db.write_keypoints(image_id, keypoints)
+            self.db.write_descriptors(image_id, descriptors)
+        self.image_ids[name] = image_id
+        self.image_cameras[name] = camera_id
+
+
+# ----------------------------------------------------------------------------- the stage
+def _probe_all(
+    jobs: list[_Job], mapper: Mapper, bad: list[tuple[str, str]]
+) -> dict[str, ImageInfo]:
+    infos = {}
+    for name, info, error in mapper(_probe_job, jobs):
+        if info is None:
+            logger.warning("skipping %s: %s", name, error)
+            bad.append((name, error))
+        else:
+            infos[name] = info
+    return infos
+
+
+def _extract_all(
+    jobs: list[_Job], infos: dict[str, ImageInfo], specs: dict[str, CameraSpec],
+    writer: _Writer, mapper: Mapper, bad: list[tuple[str, str]],
+) -> int:  # fmt: skip
+    first_by_digest: dict[str, str] = {}
+    extracted = 0
+    results = mapper(_extract_job, jobs)
+    for r in tqdm(results, total=len(jobs), desc="extract", unit="img", disable=None):
+        error, probed = r.error, infos[r.name]
+        if not error and (r.info.width, r.info.height) != (probed.width, probed.height):
+            error = "the file changed while it was being read"
+        if error:
+            logger.warning("skipping %s: %s", r.name, error)
+            bad.append((r.name, error))
+            continue
+        if r.digest in first_by_digest:
+            logger.warning(
+                "%s is an exact copy of %s; both are kept (as in COLMAP), but they form a "
+                "zero-baseline pair", r.name, first_by_digest[r.digest],
+            )  # fmt: skip
+        first_by_digest.setdefault(r.digest, r.name)
+        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors)
+        extracted += 1
+    return extracted
+
+
+def run_extract(
+    image_dir: Path, workspace: Path, options: ExtractOptions = ExtractOptions()
+) -> ExtractResult:
+    """Extract features of every image under ``image_dir`` into ``workspace/database.db``.
+
+    Skips images that already have keypoints there; raises :class:`InputError` when no image is
+    found or usable, when the intrinsics file is malformed or disagrees with an image's size, or
+    when ``camera_mode`` single/per-folder would give one camera two sizes. The database is
+    closed (complete on its own, no WAL file) when this returns or raises.
+    """
+    t0 = time.perf_counter()
+    image_dir, workspace = Path(image_dir), Path(workspace)
+    if not image_dir.is_dir():
+        raise InputError(f"image folder not found: {image_dir}")
+    names = find_images(image_dir)
+    if not names:
+        raise InputError(f"no images found in {image_dir}")
+    table: IntrinsicsTable | None = None
+    if options.intrinsics is not None:
+        table = read_intrinsics(options.intrinsics)
+        warn_unused_lines(table, names)
+    workspace.mkdir(parents=True, exist_ok=True)
+    bad: list[tuple[str, str]] = []
+    extracted = 0
+    with Database(workspace / DATABASE) as db:
+        writer = _Writer(db, workspace / SIDECAR, image_dir, options)
+        done = writer.names_with_keypoints()
+        todo = [n for n in names if n not in done]
+        skipped = len(names) - len(todo)
+        if skipped:
+            logger.info("%d of %d images already have features in %s: skipped", skipped,
+                        len(names), db.path)  # fmt: skip
+            writer.warn_changed_options()
+        jobs = [_Job(n, str(image_dir / n), options) for n in todo]
+        if jobs:
+            workers = options.num_workers or _auto_workers(options)
+            with _mapper(workers, len(jobs)) as mapper:
+                infos = _probe_all(jobs, mapper, bad)
+                specs = assign_cameras(infos, options.camera_mode, table)
+                writer.check_reused(specs)
+                jobs = [j for j in jobs if j.name in infos]
+                extracted = _extract_all(jobs, infos, specs, writer, mapper, bad)
+        if extracted == 0 and skipped == 0:
+            first = f" (e.g. {bad[0][0]}: {bad[0][1]})" if bad else ""
+            raise InputError(f"no usable images in {image_dir}: {len(bad)} unreadable files{first}")
+        if extracted:
+            writer.save()
+        num_with_keypoints = len(db.images_with_keypoints())
+        mean_keypoints = db.num_keypoints() / max(num_with_keypoints, 1)
+        num_cameras = db.num_cameras()
+    result = ExtractResult(len(names), extracted, skipped, bad, num_cameras, mean_keypoints,
+                           time.perf_counter() - t0)  # fmt: skip
+    logger.info(
+        "extract: %d images extracted, %d skipped (already done), %d unusable; %d cameras; "
+        "%.0f keypoints per image; %.1f s", result.num_extracted, skipped, len(bad), num_cameras,
+        mean_keypoints, result.time_s,
+    )  # fmt: skip
+    return result
