@@ -132,14 +132,124 @@ def cmd_cluster(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_map(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
+def _executor(args: argparse.Namespace):
+    from sfm.executors import LocalExecutor
 
+    return LocalExecutor(workers=args.workers)
+
+
+def cmd_map(args: argparse.Namespace) -> int:
     from sfm.mapping import run_map
 
     options = options_from_args(MapperOptions, args)
     with _recorder(args, "map") as recorder:
-        result = run_map(Path(args.workspace), options, recorder)
+        result = run_map(Path(args.workspace), options, recorder, _executor(args))
+    print(json.dumps({"clusters": result.num_clusters, "models": result.models}, indent=2))
+    return 0
+
+
+def cmd_extract(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from sfm.features import ExtractOptions, run_extract
+
+    try:
+        options = options_from_args(ExtractOptions, args)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    _check_image_dir(args.images)
+    result = run_extract(Path(args.images), Path(args.workspace), options)
+    with _recorder(args, "extract") as recorder:
+        from sfm.visualize import log_images
+
+        log_images(recorder, Path(args.images), Path(args.workspace))
+    print(json.dumps(asdict(result), indent=2))
+    return 0
+
+
+def cmd_match(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from sfm.matching import MatchOptions, run_match
+
+    try:
+        options = options_from_args(MatchOptions, args)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    result = run_match(Path(args.workspace), options)
+    with _recorder(args, "match") as recorder:
+        from sfm.visualize import log_verified_graph
+
+        log_verified_graph(recorder, Path(args.workspace))
+    print(json.dumps(asdict(result), indent=2))
+    return 0
+
+
+def _check_image_dir(images: str) -> None:
+    if not Path(images).is_dir():
+        raise InputError(f"image folder not found: {images}")
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from sfm.clustering import ClusterOptions
+    from sfm.features import ExtractOptions
+    from sfm.matching import MatchOptions
+    from sfm.merge import MergeOptions
+    from sfm.pipeline import ReconstructOptions, run_reconstruct
+
+    if args.images is not None:
+        _check_image_dir(args.images)
+    try:
+        options = ReconstructOptions(
+            extract=options_from_args(ExtractOptions, args), match=options_from_args(MatchOptions, args),
+            cluster=options_from_args(ClusterOptions, args), mapper=options_from_args(MapperOptions, args),
+            merge=options_from_args(MergeOptions, args))
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    workspace = Path(args.workspace)
+    from sfm.recording import Recorder
+
+    recorder = Recorder.disabled() if args.no_recording else Recorder(workspace / "recording.rrd", workspace, spawn=args.spawn)
+    with recorder:
+        report = run_reconstruct(workspace, Path(args.images) if args.images else None, options, _executor(args), recorder)
+    print(json.dumps({k: report.get(k) for k in ("images", "registered", "points", "mean_track_length",
+                      "mean_reprojection_error", "num_clusters", "num_models", "times", "warnings") if k in report}, indent=2))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from sfm.api import make_options
+    from sfm.colmap_io import read_model
+    from sfm.evaluation import evaluate, read_gt_table
+    from sfm.executors import LocalExecutor
+    from sfm.pipeline import run_reconstruct
+    from sfm.recording import Recorder
+    from sfm.rendered import RenderOptions, write_rendered_scene
+
+    workspace = Path(args.workspace)
+    if (workspace / "database.db").exists():
+        raise InputError(f"{workspace} already holds a run; give a new folder")
+    scene = write_rendered_scene(workspace / "scene", RenderOptions(num_images=args.images, seed=args.seed))
+    options = make_options(max_cluster_size=args.max_cluster_size, seed=args.seed)
+    with Recorder(workspace / "recording.rrd", workspace) as recorder:
+        report = run_reconstruct(workspace, Path(scene["image_dir"]), options, LocalExecutor(args.workers), recorder)
+    result = evaluate(read_model(workspace / "sparse" / "0"), read_gt_table(Path(scene["gt_table"])))
+    summary = {"images": report["images"], "clusters": report.get("num_clusters"), "models": report.get("num_models"),
+               "registered": result.num_registered, "median_rotation_error_deg": result.median_rotation_error_deg,
+               "auc@1": result.auc[1], "auc@5": result.auc[5], "auc@10": result.auc[10], "times": report.get("times"),
+               "model": str(workspace / "sparse" / "0"), "recording": str(workspace / "recording.rrd")}
+    print(json.dumps(_rounded(summary, 4), indent=2))
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from sfm.merge import MergeOptions
+    from sfm.pipeline import run_merge
+
+    with _recorder(args, "merge") as recorder:
+        result = run_merge(Path(args.workspace), options_from_args(MapperOptions, args), options_from_args(MergeOptions, args), recorder)
     print(json.dumps(asdict(result), indent=2))
     return 0
 
@@ -177,9 +287,54 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("map", help="incremental SfM of each cluster (or of all images) -> sparse/ or clusters/")
     p.add_argument("--workspace", required=True, help="workspace with database.db (and clusters.json)")
+    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
     add_options(p, MapperOptions, flags=MAP_FLAGS)
     _add_recording_flags(p)
     p.set_defaults(func=cmd_map)
+
+    from sfm.features import ExtractOptions
+    from sfm.matching import MatchOptions
+    from sfm.merge import MergeOptions
+
+    p = sub.add_parser("extract", help="SIFT features of every image into WORK/database.db")
+    p.add_argument("--images", required=True, help="image folder (searched recursively)")
+    p.add_argument("--workspace", required=True, help="output folder")
+    add_options(p, ExtractOptions)
+    _add_recording_flags(p)
+    p.set_defaults(func=cmd_extract)
+
+    p = sub.add_parser("match", help="select pairs, match descriptors, verify two-view geometry")
+    p.add_argument("--workspace", required=True, help="workspace with database.db")
+    add_options(p, MatchOptions)
+    _add_recording_flags(p)
+    p.set_defaults(func=cmd_match)
+
+    p = sub.add_parser("reconstruct", help="every stage: extract, match, cluster, map, merge")
+    p.add_argument("--images", help="image folder (omit to start from an existing database.db)")
+    p.add_argument("--workspace", required=True, help="output folder")
+    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
+    add_options(p, ExtractOptions)
+    add_options(p, MatchOptions)
+    add_options(p, ClusterOptions, flags={"completeness_ratio": "completeness", "max_overlap": "overlap"})
+    add_options(p, MapperOptions, flags=MAP_FLAGS)
+    add_options(p, MergeOptions)
+    _add_recording_flags(p)
+    p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser("merge", help="merge the local models along the MinST into sparse/N, then refine")
+    p.add_argument("--workspace", required=True, help="workspace with clusters/C<k>/<m> models")
+    add_options(p, MergeOptions)
+    add_options(p, MapperOptions, flags=MAP_FLAGS)
+    _add_recording_flags(p)
+    p.set_defaults(func=cmd_merge)
+
+    p = sub.add_parser("demo", help="render a small scene, reconstruct it with >= 3 clusters, print its accuracy")
+    p.add_argument("workspace", help="output folder (new)")
+    p.add_argument("--images", type=int, default=30, help="rendered views (default 30)")
+    p.add_argument("--max-cluster-size", type=int, default=12, help="cluster size bound (default 12: 3 clusters)")
+    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene and of every stage (default 0)")
+    p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("evaluate", help="compare a model with ground truth; prints JSON")
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")

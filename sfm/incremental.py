@@ -143,3 +143,25 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
             break
     models.sort(key=lambda m: -len(m.images))
     return models
+
+
+def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],
+                      camera_params: dict[int, np.ndarray]) -> Reconstruction:
+    """Global refinement of merged poses (paper Figure 1, after merging): every track of the
+    payload is triangulated with the given poses, then global BA, filtering, re-triangulation
+    and a last global BA.  Images without a pose stay unregistered."""
+    state = MapperState(payload, opts)
+    for c, key in enumerate(state.cam_keys):
+        if key in camera_params:
+            state.params[c] = np.asarray(camera_params[key], dtype=np.float64)
+    state.apply_params()
+    for i, name in enumerate(payload.names):
+        if name in poses:
+            state.R[i], state.t[i] = poses[name]
+            state.registered[i] = True
+    state.num_registered = int(state.registered.sum())
+    state.retriangulate()
+    state.global_ba(final=True)
+    state.retriangulate()
+    state.global_ba(final=True)
+    return state.to_reconstruction()

@@ -54,7 +54,9 @@ class MapperOptions:
     max_reproj_error: pixel error above which an observation is an outlier (COLMAP: 4).
     min_tri_angle: smallest triangulation angle (degrees) of a point (COLMAP: 1.5).
     local_ba_num_images: images optimised by the local BA after each registration (COLMAP: 6).
-    global_ba_ratio: a global BA runs when the model has grown by this factor (COLMAP: 1.1).
+    global_ba_ratio: a global BA runs when the model has grown by this factor (OpenSfM's 1.2;
+        COLMAP's 1.1 doubles the number of global BAs for little accuracy: the local BA after
+        every image and the final global BAs do the fine work).
     refine_intrinsics: one of none|focal|focal_radial|all: what global BA refines of cameras
         whose intrinsics were not given by the user.
     refine_given_intrinsics: also refine intrinsics given with --intrinsics (held fixed
@@ -74,7 +76,7 @@ class MapperOptions:
     max_reproj_error: float = 4.0
     min_tri_angle: float = 1.5
     local_ba_num_images: int = 6
-    global_ba_ratio: float = 1.1
+    global_ba_ratio: float = 1.2
     refine_intrinsics: str = "focal_radial"
     refine_given_intrinsics: bool = False
     loss: str = "huber"

@@ -84,6 +84,10 @@ class MapperState:
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self._update_normalised()
 
+    def apply_params(self) -> None:
+        """Recompute normalised coordinates after the intrinsics were set from outside."""
+        self._update_normalised()
+
     def close_model(self) -> None:
         self.used |= self.registered
         self._reset_model()
@@ -300,25 +304,25 @@ class MapperState:
             self._update_normalised()
 
     def local_ba(self, i: int) -> None:
-        """BA of image ``i`` and the registered images sharing most points with it; the other
-        images that see those points are held fixed."""
+        """BA around the new image ``i``: the points it sees, with ``i`` and the registered
+        images sharing most of those points free and every other image that sees them fixed
+        (OpenSfM's local bundle; the points of the neighbours alone were already adjusted)."""
         rows = self.image_rows[i]
         tracks = np.unique(self.obs_track[rows[self.obs_inlier[rows]]])
+        tracks = tracks[self.track_valid[tracks]]
         trows, _ = _gather(self.starts, tracks)
         trows = trows[self.obs_inlier[trows]]
         neigh = np.bincount(self.obs_image[trows], minlength=len(self.names))
         neigh[i] = 0
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
-        local_tracks = np.unique(self.obs_track[np.concatenate([self.image_rows[k] for k in free])])
-        local_tracks = local_tracks[self.track_valid[local_tracks]]
-        self._bundle_adjust(free, local_tracks, "none", 25)
-        self.filter_observations(local_tracks)
+        self._bundle_adjust(free, tracks, "none", 25)
+        self.filter_observations(tracks)
 
     def global_ba(self, final: bool = False) -> None:
         free = np.flatnonzero(self.registered)
         tracks = np.flatnonzero(self.track_valid)
-        self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100 if final else 50)
+        self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100 if final else 25)
         self.filter_observations(tracks)
 
     def filter_observations(self, tracks: np.ndarray) -> None:

@@ -3,7 +3,8 @@
 Without ``WORK/clusters.json`` every image is in one cluster and the models go to
 ``WORK/sparse/0``, ``WORK/sparse/1``, ... (largest first).  With it, cluster ``k``'s models go to
 ``WORK/clusters/C<k>/<m>/`` for the ``merge`` stage.  Each cluster is a self-contained
-:class:`sfm.mapper_input.MapperInput` built from the database, so it can run anywhere.
+:class:`sfm.mapper_input.MapperInput` built from the database and handed to an executor
+(``sfm.executors``), so clusters run in parallel or on other machines.
 """
 
 from __future__ import annotations
@@ -19,18 +20,19 @@ import numpy as np
 from sfm.colmap_io import write_model
 from sfm.database import Database
 from sfm.errors import InputError, NoModelError
-from sfm.incremental import reconstruct_incremental
+from sfm.executors import LocalExecutor
 from sfm.mapper_input import CameraPrior, MapperInput, MapperOptions
 from sfm.model import Reconstruction
-from sfm.recording import Recorder
-from sfm.workspace import CLUSTERS, DATABASE, REPORT, read_json, write_json_atomic
+from sfm.recording import Recorder, log_model
+from sfm.workspace import CLUSTERS, DATABASE, read_json, update_report
 
 log = logging.getLogger(__name__)
 
 
 def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
                   min_inliers: int, labels: list[str] | None = None) -> list[MapperInput]:
-    """One :class:`MapperInput` per cluster (``None``: all images) from the database."""
+    """One :class:`MapperInput` per cluster (``None``: all images) from the database; images
+    are named, everything else is arrays: the payload needs nothing from the caller's disk."""
     with Database(db_path, readonly=True) as db:
         images = db.read_images()
         cams = db.read_cameras()
@@ -41,17 +43,13 @@ def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrins
     payloads = []
     for k, ids in enumerate(groups):
         local = {iid: n for n, iid in enumerate(ids)}
-        cam_ids = sorted({images[i].camera_id for i in ids})
         cameras = {
             c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
                            cams[c].prior_focal_length, fixed=fixed_intrinsics and cams[c].model == "PINHOLE")
-            for c in cam_ids
+            for c in sorted({images[i].camera_id for i in ids})
         }
-        pairs = [
-            (local[a], local[b], g.inlier_matches.astype(np.int64), int(g.config))
-            for (a, b), g in geoms.items()
-            if a in local and b in local
-        ]
+        pairs = [(local[a], local[b], g.inlier_matches.astype(np.int64), int(g.config))
+                 for (a, b), g in geoms.items() if a in local and b in local]
         payloads.append(MapperInput(
             image_ids=list(ids), names=[images[i].name for i in ids], camera_ids=[images[i].camera_id for i in ids],
             cameras=cameras, keypoints=[keypoints.get(i, np.zeros((0, 2)))[:, :2].astype(np.float64) for i in ids],
@@ -60,15 +58,8 @@ def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrins
     return payloads
 
 
-@dataclass(frozen=True)
-class MapResult:
-    num_images: int
-    num_clusters: int
-    models: list[dict]
-    time_s: float
-
-
-def _write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
+def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
+    """Models to ``folder/0``, ``folder/1``, ... (stale numbered folders removed first)."""
     if folder.exists():
         for old in folder.iterdir():
             if old.is_dir() and old.name.isdigit():
@@ -80,37 +71,59 @@ def _write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
     return out
 
 
-def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None = None) -> MapResult:
+@dataclass(frozen=True)
+class MapResult:
+    num_images: int
+    num_clusters: int
+    models: list[dict]
+    clusters: list[dict]
+    time_s: float
+    direct: bool  # models written to sparse/ (one cluster), not clusters/ for merging
+
+
+def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None = None, executor=None) -> MapResult:
     """Incremental SfM of every cluster (or of all images) in ``workspace``."""
     recorder = recorder or Recorder.disabled()
+    executor = executor or LocalExecutor()
     workspace = Path(workspace)
     t0 = time.perf_counter()
     db_path = workspace / DATABASE
     if not db_path.exists():
         raise InputError(f"no database at {db_path}: run extract and match (or synth) first")
-    clusters_file = workspace / CLUSTERS
     clusters = None
-    if clusters_file.exists():
-        clusters = [c["members"] for c in read_json(clusters_file)["clusters"]]
-    payloads = load_payloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics, min_inliers=options.min_num_matches)
+    if (workspace / CLUSTERS).exists():
+        clusters = [c["members"] for c in read_json(workspace / CLUSTERS)["clusters"]]
+    # One cluster (all images fit): its models are final and go straight to sparse/.
+    direct = clusters is None or len(clusters) == 1
+    payloads = load_payloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics,
+                             min_inliers=options.min_num_matches)
     recorder.stage("map")
-    results = []
-    for k, payload in enumerate(payloads):
-        models = reconstruct_incremental(payload, options, recorder)
-        folder = workspace / "sparse" if clusters is None else workspace / "clusters" / f"C{k}"
-        results.append(_write_models(models, folder))
-    flat = [m for r in results for m in r]
+    per_cluster: list[dict] = [{} for _ in payloads]
+    for res in executor.run(payloads, options, recorder):
+        label = payloads[res.index].label
+        folder = workspace / "sparse" if direct else workspace / "clusters" / label
+        written = write_models(res.models, folder)
+        per_cluster[res.index] = {"cluster": label, "images": len(payloads[res.index].names), "worker": res.worker,
+                                  "models": written, "error": res.error}
+        for m, model in enumerate(res.models):
+            log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
+    flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
     num_images = sum(len(p.names) for p in payloads)
-    if clusters is None:
-        report = {"images": num_images, "models": flat, "T_SfM": round(elapsed, 3), "options": asdict(options)}
+    fields = {"images": num_images, "executor": executor.name, "clusters": per_cluster, "num_clusters": len(payloads),
+              "mapper_options": asdict(options)}
+    if direct:
+        flat.sort(key=lambda m: -m["registered"])
+        fields["num_models"] = len(flat)
         if flat:
-            best = flat[0]
-            report.update({k: best[k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
+            fields.update({k: flat[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
             if len(flat) > 1:
-                report["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction"]
-        write_json_atomic(workspace / REPORT, report)
+                fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction"]
+    failed = [c["cluster"] for c in per_cluster if c["error"]]
+    if failed:
+        fields["failed_clusters"] = failed
+    update_report(workspace, fields, {"T_SfM": elapsed})
     if not flat:
         raise NoModelError("no model could be made: no image pair could be reconstructed (too few inliers or too small baselines)")
-    log.info("map: %d models, largest %d/%d images registered, %.1f s", len(flat), flat[0]["registered"], num_images, elapsed)
-    return MapResult(num_images, len(payloads), flat, round(elapsed, 3))
+    log.info("map: %d clusters, %d local models, %.1f s", len(payloads), len(flat), elapsed)
+    return MapResult(num_images, len(payloads), flat, per_cluster, round(elapsed, 3), direct)

@@ -117,6 +117,28 @@ class Recorder:
                  rr.GraphEdges([(f"C{a}", f"C{b}") for a, b in tree_edges], graph_type="undirected"))
 
 
+def log_model(recorder: Recorder, prefix: str, recon) -> None:
+    """``<prefix>/points`` (coloured) and ``<prefix>/cams/<name>`` (Transform3D + Pinhole) of a
+    :class:`sfm.model.Reconstruction`."""
+    if not recorder.enabled:
+        return
+    import rerun as rr
+
+    from sfm.geometry import rotation_to_quaternion
+
+    if recon.points3D:
+        xyz = np.array([p.xyz for p in recon.points3D.values()])
+        rgb = np.array([p.color for p in recon.points3D.values()])
+        recorder.log(f"{prefix}/points", rr.Points3D(xyz, colors=rgb))
+    for image in recon.images.values():
+        cam = recon.cameras[image.camera_id]
+        world_from_cam = image.cam_from_world_rotation.T
+        q = rotation_to_quaternion(world_from_cam)
+        recorder.log(f"{prefix}/cams/{image.name}",
+                     rr.Transform3D(translation=image.center, quaternion=[q[1], q[2], q[3], q[0]]),
+                     rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]))
+
+
 def entity_paths(rrd_path: Path) -> set[str]:
     """Entity paths logged in an ``.rrd`` file (for tests and checks)."""
     from rerun.chunk import RrdReader

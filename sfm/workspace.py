@@ -39,3 +39,16 @@ def write_json_atomic(path: Path, obj: Any) -> None:
 def read_json(path: Path) -> Any:
     with open(path) as f:
         return json.load(f)
+
+
+def update_report(workspace: Path, fields: dict, times: dict | None = None) -> dict:
+    """Merge ``fields`` (and stage wall times under ``"times"``) into ``WORK/report.json``."""
+    path = Path(workspace) / REPORT
+    report = read_json(path) if path.exists() else {}
+    report.update(fields)
+    if times:
+        report.setdefault("times", {}).update({k: round(float(v), 3) for k, v in times.items()})
+        stages = ("T_feat", "T_match", "T_GC", "T_SfM", "T_merge", "T_BA")
+        report["times"]["total"] = round(sum(report["times"].get(k, 0.0) for k in stages), 3)
+    write_json_atomic(path, report)
+    return report

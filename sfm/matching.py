@@ -1,0 +1,353 @@
+"""The ``match`` stage (DESIGN.md, algorithm steps 2-4): pairs, descriptor matching, verification.
+
+:func:`run_match` reads images, cameras, keypoints and descriptors from ``WORK/database.db``,
+selects pairs (``sfm.pairs``), matches descriptors (:func:`match_descriptors`), verifies each pair
+(``sfm.verification``) and writes raw matches and two-view geometries back, one transaction per
+batch of pairs, so a killed run loses at most one batch. Pairs that already have a two-view
+geometry row are skipped: rerunning resumes.
+
+Descriptor matching: nearest neighbour on unit-normalised float32 descriptors, Lowe's ratio test
+on Euclidean distances (``d1 < max_ratio * d2``) and a mutual check (the match must also be the
+nearest neighbour of its partner). ``brute`` is exact: blocked BLAS products (2 - 2 x.y is the
+squared distance of unit vectors), about 0.3 s for 8192 x 8192 on one core. ``flann`` is a
+KD-tree (4 trees, 64 checks), approximate (about 97 % of the exact matches), seeded through
+``cv2.setRNGSeed`` so it is deterministic. ``auto`` takes brute up to 2^27 descriptor pairs
+(about 11.6k x 11.6k features) and flann above, where its n log n wins.
+
+Parallelism: a process pool (``spawn``; scripts need the ``if __name__ == "__main__"`` guard) of
+``num_workers``; each worker calls ``cv2.setNumThreads(1)``, limits BLAS to one thread, and reads
+keypoints and descriptors itself from the database (read-only, an LRU cache of images), so only
+pair ids and results travel. A worker that dies raises ``BrokenProcessPool``; finished batches
+stay in the database.
+Results are identical for any number of workers: every random choice is seeded by (seed, pair).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import time
+from collections import OrderedDict
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from sfm.database import Database
+from sfm.database_schema import CameraRecord, TwoViewGeometry
+from sfm.errors import InputError
+from sfm.pairs import select_pairs
+from sfm.verification import VerifyOptions, pair_seed, to_colmap_pixels, verify_pair
+
+logger = logging.getLogger(__name__)
+
+BRUTE_MAX_PRODUCT = 2**27
+BATCH_PAIRS = 100
+CACHE_BYTES = 256 * 2**20
+_V = VerifyOptions()
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """Options of the ``match`` stage.
+
+    pairs: which pairs to match, one of auto|exhaustive|retrieval (auto: exhaustive below
+      exhaustive_threshold images, else retrieval)
+    top_k: retrieval keeps each image's top_k most similar images (VLAD)
+    sequential: also match each image with the next N images in name order (0: off)
+    exhaustive_threshold: number of images from which auto switches to retrieval
+    matcher: nearest-neighbour search, one of auto|brute|flann (brute: exact; flann: KD-tree,
+      approximate; auto: brute unless both images have many features)
+    max_ratio: Lowe's ratio test on descriptor distances (COLMAP's max_ratio)
+    cross_check: keep only mutual nearest neighbours
+    max_error_px: verification inlier threshold in pixels (Sampson distance, H transfer error)
+    confidence: RANSAC confidence of verification
+    max_iterations: maximum RANSAC iterations of verification
+    min_num_inliers: a pair with fewer inliers is not verified
+    max_h_inlier_ratio: H inliers / E-or-F inliers above this mark a pair planar or panoramic
+    num_workers: worker processes (0: all cores)
+    seed: seed of the vocabulary, FLANN and RANSAC; the same seed gives the same matches
+    """
+
+    pairs: str = "auto"
+    top_k: int = 30
+    sequential: int = 0
+    exhaustive_threshold: int = 200
+    matcher: str = "auto"
+    max_ratio: float = 0.8
+    cross_check: bool = True
+    max_error_px: float = _V.max_error_px
+    confidence: float = _V.confidence
+    max_iterations: int = _V.max_iterations
+    min_num_inliers: int = _V.min_num_inliers
+    max_h_inlier_ratio: float = _V.max_h_inlier_ratio
+    num_workers: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.matcher not in ("auto", "brute", "flann"):
+            raise ValueError(f"matcher must be one of auto|brute|flann, got {self.matcher!r}")
+        if self.pairs not in ("auto", "exhaustive", "retrieval"):
+            raise ValueError(f"pairs must be one of auto|exhaustive|retrieval, got {self.pairs!r}")
+        if not 0 < self.max_ratio <= 1 or self.top_k < 1 or self.sequential < 0:
+            raise ValueError("need 0 < max_ratio <= 1, top_k >= 1 and sequential >= 0")
+
+    def verify_options(self) -> VerifyOptions:
+        return VerifyOptions(self.max_error_px, self.confidence, self.max_iterations,
+                             self.min_num_inliers, self.max_h_inlier_ratio)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """What ``run_match`` did.
+
+    num_pairs_considered: pairs selected; num_pairs_skipped_existing of them already had a
+    geometry; num_pairs_processed were matched now. num_verified and median_inliers describe all
+    verified pairs in the database afterwards (config >= 2, >= min_num_inliers). Times are summed
+    over pairs (worker seconds: descriptor matching, verification); time_total_s is wall time.
+    """
+
+    num_images: int
+    num_pairs_considered: int
+    num_pairs_skipped_existing: int
+    num_pairs_processed: int
+    num_verified: int
+    median_inliers: float
+    time_match_s: float
+    time_verify_s: float
+    time_total_s: float
+
+
+# ------------------------------------------------------------------------------ matching
+def normalize_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """float32 rows of unit L2 norm (uint8 RootSIFT rows are unit vectors times ~512)."""
+    d = np.asarray(descriptors, np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _nearest_brute(d1: np.ndarray, d2: np.ndarray, block: int = 128):
+    """Exact: best and second-best squared distances 1->2 and the nearest of 1 for each in 2."""
+    n1 = len(d1)
+    best = np.zeros(n1, np.int64)
+    sim1 = np.full(n1, -np.inf, np.float32)
+    sim2 = np.full(n1, -np.inf, np.float32)
+    back = np.zeros(len(d2), np.int64)
+    back_sim = np.full(len(d2), -np.inf, np.float32)
+    d2t = np.ascontiguousarray(d2.T)
+    cols = np.arange(len(d2))
+    for start in range(0, n1, block):
+        sim = d1[start : start + block] @ d2t
+        rows = np.arange(sim.shape[0])
+        j = np.argmax(sim, axis=1)
+        s = sim[rows, j]
+        best[start : start + block], sim1[start : start + block] = j, s
+        if sim.shape[1] > 1:
+            sim[rows, j] = -np.inf
+            sim2[start : start + block] = sim.max(axis=1)
+            sim[rows, j] = s
+        i = np.argmax(sim, axis=0)
+        s_back = sim[i, cols]
+        better = s_back > back_sim  # strict: the first block wins ties, like argmax
+        back[better], back_sim[better] = i[better] + start, s_back[better]
+    to_dist2 = lambda s: np.maximum(2.0 - 2.0 * s, 0.0)
+    return best, to_dist2(sim1), to_dist2(sim2), back
+
+
+def _nearest_flann(d1: np.ndarray, d2: np.ndarray, seed: int):
+    """Approximate (KD-tree, seeded), same outputs as :func:`_nearest_brute`."""
+    cv2.setRNGSeed(int(seed))
+    index2 = cv2.flann_Index(d2, {"algorithm": 1, "trees": 4})
+    k = min(2, len(d2))
+    idx, dist2 = index2.knnSearch(d1, k, params={"checks": 64})
+    second = dist2[:, 1] if k == 2 else np.full(len(d1), np.inf, np.float32)
+    cv2.setRNGSeed(int(seed) + 1)
+    index1 = cv2.flann_Index(d1, {"algorithm": 1, "trees": 4})
+    back, _ = index1.knnSearch(d2, 1, params={"checks": 64})
+    return idx[:, 0].astype(np.int64), dist2[:, 0], second, back[:, 0].astype(np.int64)
+
+
+def match_descriptors(
+    descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio: float = 0.8,
+    cross_check: bool = True, matcher: str = "auto", max_distance: float | None = None,
+    seed: int = 0,
+) -> np.ndarray:  # fmt: skip
+    """(M, 2) int64 matches (index in 1, index in 2): nearest neighbours passing Lowe's ratio
+    test on Euclidean distances of unit-normalised descriptors, the mutual check when
+    ``cross_check``, and ``distance <= max_distance`` when given. Sorted by index in 1."""
+    d1, d2 = normalize_descriptors(descriptors1), normalize_descriptors(descriptors2)
+    if len(d1) == 0 or len(d2) == 0:
+        return np.zeros((0, 2), np.int64)
+    if matcher == "auto":
+        matcher = "brute" if len(d1) * len(d2) <= BRUTE_MAX_PRODUCT else "flann"
+    if matcher == "flann" and min(len(d1), len(d2)) >= 2:
+        best, dist2_1, dist2_2, back = _nearest_flann(d1, d2, seed)
+    else:
+        best, dist2_1, dist2_2, back = _nearest_brute(d1, d2)
+    keep = dist2_1 < (max_ratio**2) * dist2_2
+    if cross_check:
+        keep &= back[best] == np.arange(len(d1))
+    if max_distance is not None:
+        keep &= dist2_1 <= max_distance**2
+    rows = np.flatnonzero(keep)
+    return np.stack([rows, best[rows]], axis=1)
+
+
+# ------------------------------------------------------------------------------ one pair
+class _PairProcessor:
+    """Matches and verifies pairs, reading features from a database through an LRU cache."""
+
+    def __init__(self, db: Database, camera_of: dict[int, int], cameras: dict[int, CameraRecord],
+                 options: MatchOptions) -> None:  # fmt: skip
+        """``camera_of``: image id -> camera id; ``cameras``: camera id -> record."""
+        self.db, self.camera_of, self.cameras, self.options = db, camera_of, cameras, options
+        self.verify_options = options.verify_options()
+        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._cache_bytes = 0
+
+    def features(self, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """(keypoints, unit-normalised float32 descriptors) of an image."""
+        if image_id in self._cache:
+            self._cache.move_to_end(image_id)
+            return self._cache[image_id]
+        item = (
+            self.db.read_keypoints(image_id),
+            normalize_descriptors(self.db.read_descriptors(image_id)),
+        )
+        self._cache[image_id] = item
+        self._cache_bytes += item[0].nbytes + item[1].nbytes
+        while self._cache_bytes > CACHE_BYTES and len(self._cache) > 2:
+            _, old = self._cache.popitem(last=False)
+            self._cache_bytes -= old[0].nbytes + old[1].nbytes
+        return item
+
+    def __call__(
+        self, pair: tuple[int, int]
+    ) -> tuple[int, int, np.ndarray, TwoViewGeometry, float, float]:
+        id1, id2 = int(pair[0]), int(pair[1])
+        (kp1, d1), (kp2, d2) = self.features(id1), self.features(id2)
+        seed = pair_seed(self.options.seed, id1, id2)
+        o = self.options
+        t0 = time.perf_counter()
+        matches = match_descriptors(d1, d2, o.max_ratio, o.cross_check, o.matcher, seed=seed)
+        t1 = time.perf_counter()
+        cam1, cam2 = self.cameras[self.camera_of[id1]], self.cameras[self.camera_of[id2]]
+        geometry = verify_pair(kp1, kp2, matches, cam1, cam2, self.verify_options, seed)
+        return id1, id2, matches.astype(np.uint32), geometry, t1 - t0, time.perf_counter() - t1
+
+
+_WORKER: _PairProcessor | None = None
+
+
+def _init_worker(db_path: str, camera_of, cameras, options: MatchOptions) -> None:
+    global _WORKER
+    cv2.setNumThreads(1)
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
+        pass
+    _WORKER = _PairProcessor(Database(db_path, readonly=True), camera_of, cameras, options)
+
+
+def _work(pair: tuple[int, int]):
+    assert _WORKER is not None
+    return _WORKER(pair)
+
+
+# ------------------------------------------------------------------------------ the stage
+def _usable_images(db: Database, ordered_ids: list[int], names: dict[int, str]) -> list[int]:
+    """Images with keypoints and as many descriptors; the others are skipped with a warning."""
+    usable = []
+    for image_id in ordered_ids:
+        n = len(db.read_keypoints(image_id))
+        n_desc = len(db.read_descriptors(image_id)) if n else 0
+        if n == 0:
+            logger.warning("image %s has no keypoints: skipped", names[image_id])
+        elif n_desc != n:
+            logger.warning("image %s has %d keypoints but %d descriptors: skipped",
+                           names[image_id], n, n_desc)  # fmt: skip
+        else:
+            usable.append(image_id)
+    return usable
+
+
+def run_match(workspace: Path, options: MatchOptions = MatchOptions()) -> MatchResult:
+    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring)."""
+    start = time.perf_counter()
+    db_path = Path(workspace) / "database.db"
+    if not db_path.is_file():
+        raise InputError(f"no database at {db_path}: run `graphsfm extract` first")
+    with Database(db_path) as db:
+        images = db.read_images()
+        if not images:
+            raise InputError(f"no images in {db_path}")
+        names = {i: r.name for i, r in images.items()}
+        ordered = sorted(images, key=lambda i: names[i])
+        usable = _usable_images(db, ordered, names)
+        if not usable:
+            raise InputError(f"no image in {db_path} has keypoints and descriptors")
+        pairs = select_pairs(usable, options.pairs, top_k=options.top_k, sequential=options.sequential,
+                             exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
+                             load_descriptors=db.read_descriptors)  # fmt: skip
+        done = db.pairs_with_geometry()
+        todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
+        skipped = len(pairs) - len(todo)
+        logger.info("%d images, %d pairs selected, %d already verified (resumed), %d to match",
+                    len(usable), len(pairs), skipped, len(todo))  # fmt: skip
+        camera_of = {i: r.camera_id for i, r in images.items()}
+        times = _process(db, todo, camera_of, db.read_cameras(), options)
+        _, _, inliers = db.verified_pairs(options.min_num_inliers)
+    return MatchResult(
+        num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
+        num_pairs_processed=len(todo), num_verified=len(inliers),
+        median_inliers=float(np.median(inliers)) if len(inliers) else 0.0,
+        time_match_s=times[0], time_verify_s=times[1], time_total_s=time.perf_counter() - start,
+    )  # fmt: skip
+
+
+def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, options: MatchOptions):
+    """Run the pairs (in a pool when it pays), write results in batches; (t_match, t_verify)."""
+    workers = options.num_workers or len(os.sched_getaffinity(0))
+    t_match = t_verify = 0.0
+    batch: list = []
+
+    def flush() -> None:
+        with db.transaction():
+            db.write_matches_many((a, b, m) for a, b, m, _ in batch)
+            db.write_two_view_geometries_many((a, b, to_colmap_pixels(g)) for a, b, _, g in batch)
+        batch.clear()
+
+    pool = None
+    failed_write = False
+    try:
+        if workers > 1 and len(todo) >= 2 * workers:
+            # an executor, not multiprocessing.Pool: a worker that dies or fails to start raises
+            # BrokenProcessPool here instead of being respawned forever
+            pool = ProcessPoolExecutor(
+                workers, multiprocessing.get_context("spawn"), _init_worker,
+                (str(db.path), camera_of, cameras, options),
+            )  # fmt: skip
+            chunk = max(1, min(16, len(todo) // (8 * workers)))
+            results = pool.map(_work, todo, chunksize=chunk)
+        else:
+            results = map(_PairProcessor(db, camera_of, cameras, options), todo)
+        for id1, id2, matches, geometry, tm, tv in tqdm(
+            results, total=len(todo), desc="match", unit="pair"
+        ):
+            batch.append((id1, id2, matches, geometry))
+            t_match, t_verify = t_match + tm, t_verify + tv
+            if len(batch) >= BATCH_PAIRS:
+                failed_write = True
+                flush()
+                failed_write = False
+    finally:
+        if batch and not failed_write:
+            flush()  # keep what was finished, also when interrupted
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+    return t_match, t_verify

@@ -1,0 +1,155 @@
+"""Which image pairs to match (DESIGN.md, algorithm step 2): exhaustive, retrieval, sequential.
+
+- ``exhaustive``: every pair, n (n - 1) / 2 of them.
+- ``retrieval``: one global descriptor per image, VLAD (Jegou et al. 2010; intra-normalised as in
+  Arandjelovic & Zisserman 2013) over a small vocabulary learned from the dataset's own
+  descriptors with a seeded ``MiniBatchKMeans``; similarity is the dot product of the VLAD
+  vectors and every image keeps its ``top_k`` most similar images (symmetric union).
+- ``auto``: exhaustive below ``exhaustive_threshold`` images, retrieval at or above it.
+- ``sequential`` window N > 0 adds (i, i+1 .. i+N) in the order the ids are given (callers pass
+  name order), on top of the pairs above.
+
+A pair is ``(id1, id2)`` with ``id1 < id2``; results are sorted unique ``(P, 2)`` int64 arrays.
+No I/O here: retrieval reads descriptors through a callable the caller provides, twice per image
+(vocabulary sample, then VLAD), so never more than one image's descriptors are held at a time.
+The same input and seed give the same pairs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+PAIR_METHODS = ("auto", "exhaustive", "retrieval")
+VOCABULARY_WORDS = 64
+SAMPLES_PER_IMAGE = 200
+MAX_VOCABULARY_SAMPLES = 100_000
+
+
+def _unique_pairs(pairs: np.ndarray) -> np.ndarray:
+    """Rows sorted so that id1 < id2, self pairs dropped, sorted unique."""
+    pairs = np.sort(np.asarray(pairs, np.int64).reshape(-1, 2), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0) if len(pairs) else np.zeros((0, 2), np.int64)
+
+
+def exhaustive_pairs(image_ids: Sequence[int]) -> np.ndarray:
+    """All n (n - 1) / 2 pairs of the given images."""
+    ids = np.asarray(image_ids, np.int64)
+    i, j = np.triu_indices(len(ids), k=1)
+    return _unique_pairs(np.stack([ids[i], ids[j]], axis=1))
+
+
+def sequential_pairs(image_ids: Sequence[int], window: int) -> np.ndarray:
+    """Pairs (i, i+1 .. i+window) of consecutive images in the given order (window 0: none)."""
+    ids = np.asarray(image_ids, np.int64)
+    parts = [np.stack([ids[:-k], ids[k:]], axis=1) for k in range(1, min(window, len(ids) - 1) + 1)]
+    return _unique_pairs(np.concatenate(parts)) if parts else np.zeros((0, 2), np.int64)
+
+
+def _normalized(descriptors: np.ndarray) -> np.ndarray:
+    """float32 rows of unit L2 norm (RootSIFT uint8 rows are unit vectors up to a scale)."""
+    d = np.asarray(descriptors, np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def vocabulary_sample(descriptors: np.ndarray, count: int, seed: int, image_id: int) -> np.ndarray:
+    """Up to ``count`` rows of one image's descriptors, drawn with a seed of (seed, image_id)."""
+    rng = np.random.default_rng([int(seed), int(image_id)])
+    n = len(descriptors)
+    rows = np.sort(rng.choice(n, size=min(count, n), replace=False)) if n else np.zeros(0, int)
+    return _normalized(descriptors[rows])
+
+
+def learn_vocabulary(
+    samples: np.ndarray, num_words: int = VOCABULARY_WORDS, seed: int = 0
+) -> np.ndarray:
+    """(K, D) float32 visual words: seeded MiniBatchKMeans of unit-normalised descriptors.
+
+    Runs on one thread: OpenMP's busy waiting made it 20x slower on a loaded 2-core machine,
+    and the result does not depend on the machine."""
+    from sklearn.cluster import MiniBatchKMeans
+    from threadpoolctl import threadpool_limits
+
+    samples = _normalized(samples)
+    k = int(min(num_words, len(samples)))
+    if k < 1:
+        raise ValueError("no descriptors to learn a vocabulary from")
+    kmeans = MiniBatchKMeans(n_clusters=k, random_state=int(seed), batch_size=4096, n_init=3,
+                             max_iter=50)  # fmt: skip
+    with threadpool_limits(limits=1):
+        return kmeans.fit(samples).cluster_centers_.astype(np.float32)
+
+
+def vlad(descriptors: np.ndarray, vocabulary: np.ndarray) -> np.ndarray:
+    """VLAD vector (K * D,) of one image: residuals to the nearest word summed per word, each
+    word's block L2-normalised (intra-normalisation), then signed square root, then global L2."""
+    k, dim = vocabulary.shape
+    out = np.zeros((k, dim), np.float32)
+    if len(descriptors):
+        d = _normalized(descriptors)
+        words = np.argmax(d @ vocabulary.T - 0.5 * np.sum(vocabulary**2, axis=1), axis=1)
+        np.add.at(out, words, d - vocabulary[words])
+    out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+    out = np.sign(out) * np.sqrt(np.abs(out))
+    out = out.ravel()
+    return out / max(float(np.linalg.norm(out)), 1e-12)
+
+
+def retrieval_pairs(
+    image_ids: Sequence[int], global_descriptors: np.ndarray, top_k: int
+) -> np.ndarray:
+    """Each image's ``top_k`` most similar images by dot product (ties: lower index first),
+    symmetric union."""
+    ids = np.asarray(image_ids, np.int64)
+    g = np.asarray(global_descriptors, np.float32)
+    n = len(ids)
+    k = min(int(top_k), n - 1)
+    if k < 1:
+        return np.zeros((0, 2), np.int64)
+    parts = []
+    for start in range(0, n, 1024):
+        sim = g[start : start + 1024] @ g.T
+        rows = np.arange(sim.shape[0])
+        sim[rows, start + rows] = -np.inf  # never the image itself
+        order = np.argsort(-sim, axis=1, kind="stable")[:, :k]
+        parts.append(np.stack([np.repeat(ids[start + rows], k), ids[order.ravel()]], axis=1))
+    return _unique_pairs(np.concatenate(parts))
+
+
+def global_descriptors(
+    image_ids: Sequence[int], load_descriptors: Callable[[int], np.ndarray], seed: int = 0,
+    num_words: int = VOCABULARY_WORDS,
+) -> np.ndarray:  # fmt: skip
+    """(n, K * D) VLAD vectors of the images, vocabulary learned from their own descriptors
+    (up to 200 per image and 100k in total, seeded)."""
+    per_image = max(1, min(SAMPLES_PER_IMAGE, MAX_VOCABULARY_SAMPLES // max(len(image_ids), 1)))
+    sample = [vocabulary_sample(load_descriptors(i), per_image, seed, i) for i in image_ids]
+    vocabulary = learn_vocabulary(np.concatenate(sample), num_words, seed)
+    return np.stack([vlad(load_descriptors(i), vocabulary) for i in image_ids])
+
+
+def select_pairs(
+    image_ids: Sequence[int], method: str = "auto", *, top_k: int = 30, sequential: int = 0,
+    exhaustive_threshold: int = 200, seed: int = 0,
+    load_descriptors: Callable[[int], np.ndarray] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """The sorted unique (P, 2) pairs to match among ``image_ids`` (given in name order).
+
+    ``method`` one of auto|exhaustive|retrieval; retrieval needs ``load_descriptors``.
+    """
+    if method not in PAIR_METHODS:
+        raise ValueError(f"pairs must be one of {'|'.join(PAIR_METHODS)}, got {method!r}")
+    if method == "auto":
+        method = "exhaustive" if len(image_ids) < exhaustive_threshold else "retrieval"
+    if method == "retrieval" and top_k >= len(image_ids) - 1:
+        method = "exhaustive"  # every image is among every other's top k
+    if method == "exhaustive":
+        pairs = exhaustive_pairs(image_ids)
+    else:
+        if load_descriptors is None:
+            raise ValueError("retrieval pairs need descriptors (load_descriptors)")
+        vectors = global_descriptors(image_ids, load_descriptors, seed)
+        pairs = retrieval_pairs(image_ids, vectors, top_k)
+    return _unique_pairs(np.concatenate([pairs, sequential_pairs(image_ids, sequential)]))
