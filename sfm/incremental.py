@@ -124,11 +124,12 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
         state.log_progress(recorder)
         while _register_next(state):
             state.triangulate_new(state.last_registered)
-            state.local_ba(state.last_registered)
             if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= 10:
-                state.global_ba()
+                state.global_ba()  # covers what the local BA would adjust
                 state.retriangulate()
                 last_global = state.num_registered
+            else:
+                state.local_ba(state.last_registered)
             state.log_progress(recorder)
         state.global_ba(final=True)
         state.retriangulate()

@@ -270,7 +270,8 @@ class MapperState:
         return added
 
     # ------------------------------------------------------------------ bundle adjustment
-    def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int) -> None:
+    def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
+                       tolerance: float = 1e-5) -> None:
         rows, _ = _gather(self.starts, tracks)
         rows = rows[self.obs_inlier[rows] & self.registered[self.obs_image[rows]]]
         if len(rows) == 0:
@@ -293,7 +294,7 @@ class MapperState:
             self.R[order], self.t[order], self.track_xyz[tracks],
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows],
             BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
-                      refine_intrinsics=refine, max_iterations=max_iterations),
+                      refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance),
         )
         self.R[order[:n_free]] = result.rotations[:n_free]
         self.t[order[:n_free]] = result.translations[:n_free]
@@ -316,13 +317,15 @@ class MapperState:
         neigh[i] = 0
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
-        self._bundle_adjust(free, tracks, "none", 25)
+        # Intermediate BAs stop at a 0.1% cost decrease: later BAs refine again, and the final
+        # global BAs run to GTSAM's default tolerance.
+        self._bundle_adjust(free, tracks, "none", 25, tolerance=1e-3)
         self.filter_observations(tracks)
 
     def global_ba(self, final: bool = False) -> None:
         free = np.flatnonzero(self.registered)
         tracks = np.flatnonzero(self.track_valid)
-        self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100 if final else 25)
+        self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100 if final else 25, 1e-5 if final else 1e-3)
         self.filter_observations(tracks)
 
     def filter_observations(self, tracks: np.ndarray) -> None:

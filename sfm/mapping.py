@@ -109,7 +109,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
             log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
     flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
-    num_images = sum(len(p.names) for p in payloads)
+    num_images = len({n for p in payloads for n in p.names})  # clusters overlap
     fields = {"images": num_images, "executor": executor.name, "clusters": per_cluster, "num_clusters": len(payloads),
               "mapper_options": asdict(options)}
     if direct:
