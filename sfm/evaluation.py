@@ -7,20 +7,19 @@ registered when it is in the reconstruction and ``Image.registered`` (DESIGN.md)
 Metrics (the "Pose accuracy" rule of DESIGN.md):
 
 * Registration: registered GT images / GT images.
-* Absolute errors, after the robust Sim3 ``gt_from_est`` of :func:`sfm.alignment.align_centers`
-  on camera centres: per image, the rotation error is the angle of ``R_est_aligned @ R_gt.T``
-  in degrees (``R_est_aligned = R_est @ R_align.T``), and the centre error is
-  ``|sim(C_est) - C_gt|`` divided by the :func:`~sfm.alignment.scene_extent` of the GT centres.
+* Absolute errors, after the robust Sim3 ``gt_from_est`` (:func:`sfm.alignment.align_centers`
+  picks inliers, scale and translation from camera centres; the rotation is the geodesic median
+  of the inliers' orientation offsets, :func:`~sfm.alignment.refine_rotation_with_orientations`):
+  per image, the angle of ``R_est @ R_align.T @ R_gt.T`` in degrees, and ``|sim(C_est) - C_gt|``
+  divided by the :func:`~sfm.alignment.scene_extent` of the GT centres.
 * Relative-pose AUC (alignment free): for every GT pair ``i < j`` the relative pose
   ``cam_j_from_cam_i = (R_j R_i^T, t_j - R_j R_i^T t_i)`` of the estimate is compared with the GT
   one; the pair error is ``max(rotation error, angle between the translation directions)`` in
   degrees, infinite when either image is unregistered.  ``AUC@X`` is the pose AUC of SuperGlue /
   LightGlue / hloc (:func:`auc`): area under the recall-vs-error curve up to X, divided by X.
 
-Angles are computed with ``atan2`` forms (never ``arccos`` of a dot product), so identical
-rotations or parallel directions give errors at the 1e-14 degree level, not 1e-6.
-
-The library does no printing; it logs through ``logging.getLogger(__name__)``.
+Angles use ``atan2`` forms (never ``arccos`` of a dot product): identical rotations or parallel
+directions give errors at the 1e-14 degree level, not 1e-6.
 """
 
 from __future__ import annotations
@@ -32,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm.alignment import (align_centers, default_alignment_threshold, is_collinear,
-                           refine_rotation_with_orientations, scene_extent)
+from sfm.alignment import align_centers, default_alignment_threshold, is_collinear, scene_extent
+from sfm.alignment import refine_rotation_with_orientations
 from sfm.geometry import Sim3, rotation_to_quaternion
 from sfm.ground_truth import GTPose, gt_from_reconstruction, read_gt_table  # noqa: F401
 from sfm.model import Reconstruction
@@ -202,10 +201,7 @@ class _AucAccumulator:
         ]
 
 
-def auc(
-    errors: Sequence[float] | np.ndarray,
-    thresholds: Sequence[float] = DEFAULT_AUC_THRESHOLDS,
-) -> list[float]:
+def auc(errors: Sequence[float] | np.ndarray, thresholds: Sequence[float] = DEFAULT_AUC_THRESHOLDS) -> list[float]:
     """Pose AUC of SuperGlue / LightGlue / hloc: for each threshold X, the area under the recall
     curve (errors sorted, recall ``(i+1)/N``, ``(0, 0)`` prepended, clipped at X) by trapezoids,
     divided by X.  Errors equal to X do not count; ``inf`` and NaN errors count as failures.
@@ -341,7 +337,7 @@ def evaluate(
         threshold = float(alignment_threshold)
     reg_idx = np.flatnonzero(registered)
     sim, inliers = align_centers(est_c[reg_idx], gt_c[reg_idx], threshold=threshold, seed=seed)
-    if sim is not None:
+    if sim is not None:  # rotation from the orientations: centres alone leave a roll free
         sim = refine_rotation_with_orientations(sim, est_rot[reg_idx], gt_rot[reg_idx], est_c[reg_idx], gt_c[reg_idx], inliers)
     rot_errors: dict[str, float] = {}
     center_errors: dict[str, float] = {}

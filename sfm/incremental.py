@@ -23,6 +23,7 @@ import numpy as np
 from backend.bundle_adjustment import refine_pose
 from sfm.mapper_input import MapperInput, MapperOptions
 from sfm.mapper_state import MapperState
+from sfm.triangulation import triangulate_dlt
 from sfm.model import Reconstruction
 from sfm.recording import Recorder
 
@@ -47,6 +48,35 @@ def _relative_pose(state: MapperState, i: int, j: int, matches: np.ndarray, seed
     return R, t.ravel() / np.linalg.norm(t), inl
 
 
+def two_view_score(state: MapperState, i: int, j: int, R: np.ndarray, t: np.ndarray, matches: np.ndarray) -> tuple[int, float]:
+    """Points of a candidate initial pair that pass depth and reprojection checks, and their
+    median triangulation angle (degrees)."""
+    if len(matches) == 0:
+        return 0, 0.0
+    x = np.concatenate([state.norm_of(i, matches[:, 0]), state.norm_of(j, matches[:, 1])])
+    m = len(matches)
+    rot = np.concatenate([np.tile(np.eye(3), (m, 1, 1)), np.tile(R, (m, 1, 1))])
+    tra = np.concatenate([np.zeros((m, 3)), np.tile(t, (m, 1))])
+    order = np.r_[np.arange(m), np.arange(m) + m].reshape(2, m).T.ravel()  # interleave views
+    starts = np.arange(0, 2 * m + 1, 2)
+    X = triangulate_dlt(rot[order], tra[order], x[order], starts)
+    z1 = X[:, 2]
+    z2 = (X @ R.T + t)[:, 2]
+    proj1 = X[:, :2] / z1[:, None]
+    x2c = X @ R.T + t
+    proj2 = x2c[:, :2] / z2[:, None]
+    err = np.maximum(np.linalg.norm(proj1 - x[:m], axis=1) * state.focal(i), np.linalg.norm(proj2 - x[m:], axis=1) * state.focal(j))
+    ok = (z1 > 0) & (z2 > 0) & (err < state.opts.max_reproj_error)
+    if ok.sum() == 0:
+        return 0, 0.0
+    c2 = -R.T @ t
+    r1 = X[ok] / np.linalg.norm(X[ok], axis=1, keepdims=True)
+    r2 = (X[ok] - c2) / np.linalg.norm(X[ok] - c2, axis=1, keepdims=True)
+    angles = np.degrees(np.arccos(np.clip(np.sum(r1 * r2, axis=1), -1, 1)))
+    good = angles >= state.opts.min_tri_angle
+    return int(good.sum()), float(np.median(angles))
+
+
 def _try_initial_pair(state: MapperState, min_angle: float, tried: set) -> bool:
     """Find and reconstruct an initial pair among unregistered images (most inliers first)."""
     opts = state.opts
@@ -63,7 +93,7 @@ def _try_initial_pair(state: MapperState, min_angle: float, tried: set) -> bool:
         if rel is None:
             continue
         R, t, inl = rel
-        score, angle = state.two_view_score(i, j, R, t, m[inl])
+        score, angle = two_view_score(state, i, j, R, t, m[inl])
         log.debug("init candidate %s-%s: %d inliers, median angle %.1f deg, %d points", state.names[i], state.names[j], n_inl, angle, score)
         if angle >= min_angle and score >= opts.abs_pose_min_num_inliers and (best is None or score > best[0]):
             best = (score, i, j, R, t)

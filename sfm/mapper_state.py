@@ -14,10 +14,10 @@ import logging
 import numpy as np
 
 from backend.bundle_adjustment import BAOptions, bundle_adjust
-from sfm.camera_models import project, unproject
+from sfm.camera_models import calibration_matrix, project, unproject
 from sfm.mapper_input import MapperInput, MapperOptions
 from sfm.model import Camera, Image, Point3D, Reconstruction
-from sfm.recording import Recorder
+from sfm.recording import Recorder, log_camera
 from sfm.tracks import build_tracks
 from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
 
@@ -81,6 +81,7 @@ class MapperState:
         self.obs_inlier = np.zeros(len(self.obs_image), dtype=bool)
         self.num_registered = 0
         self.last_registered = -1
+        self.last_ba_rms = float("nan")
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self._update_normalised()
 
@@ -129,34 +130,6 @@ class MapperState:
         return err
 
     # ------------------------------------------------------------------ initial pair
-    def two_view_score(self, i, j, R, t, matches) -> tuple[int, float]:
-        """Points of a candidate initial pair that pass depth and reprojection checks, and their
-        median triangulation angle (degrees)."""
-        if len(matches) == 0:
-            return 0, 0.0
-        x = np.concatenate([self.norm_of(i, matches[:, 0]), self.norm_of(j, matches[:, 1])])
-        m = len(matches)
-        rot = np.concatenate([np.tile(np.eye(3), (m, 1, 1)), np.tile(R, (m, 1, 1))])
-        tra = np.concatenate([np.zeros((m, 3)), np.tile(t, (m, 1))])
-        order = np.r_[np.arange(m), np.arange(m) + m].reshape(2, m).T.ravel()  # interleave views
-        starts = np.arange(0, 2 * m + 1, 2)
-        X = triangulate_dlt(rot[order], tra[order], x[order], starts)
-        z1 = X[:, 2]
-        z2 = (X @ R.T + t)[:, 2]
-        proj1 = X[:, :2] / z1[:, None]
-        x2c = X @ R.T + t
-        proj2 = x2c[:, :2] / z2[:, None]
-        err = np.maximum(np.linalg.norm(proj1 - x[:m], axis=1) * self.focal(i), np.linalg.norm(proj2 - x[m:], axis=1) * self.focal(j))
-        ok = (z1 > 0) & (z2 > 0) & (err < self.opts.max_reproj_error)
-        if ok.sum() == 0:
-            return 0, 0.0
-        c2 = -R.T @ t
-        r1 = X[ok] / np.linalg.norm(X[ok], axis=1, keepdims=True)
-        r2 = (X[ok] - c2) / np.linalg.norm(X[ok] - c2, axis=1, keepdims=True)
-        angles = np.degrees(np.arccos(np.clip(np.sum(r1 * r2, axis=1), -1, 1)))
-        good = angles >= self.opts.min_tri_angle
-        return int(good.sum()), float(np.median(angles))
-
     def start_model(self, i: int, j: int, R: np.ndarray, t: np.ndarray) -> None:
         self.R[i], self.t[i] = np.eye(3), np.zeros(3)
         self.R[j], self.t[j] = R, t
@@ -299,6 +272,7 @@ class MapperState:
         self.R[order[:n_free]] = result.rotations[:n_free]
         self.t[order[:n_free]] = result.translations[:n_free]
         self.track_xyz[tracks] = result.points
+        self.last_ba_rms = float(result.final_rms)
         if refine != "none":
             for c, p in zip(cams, result.camera_params):
                 self.params[c] = np.asarray(p, dtype=np.float64)
@@ -387,23 +361,18 @@ class MapperState:
         return recon
 
     def log_progress(self, recorder: Recorder) -> None:
+        """``clusters/<label>/points``, the new camera and the last BA's RMS on the
+        ``registration`` timeline: the model growing image by image."""
         if not recorder.enabled:
             return
         import rerun as rr
 
         label = self.payload.label
         recorder.set_time("registration", self.num_registered)
-        valid = np.flatnonzero(self.track_valid)
-        recorder.log(f"clusters/{label}/points", rr.Points3D(self.track_xyz[valid], radii=0.0))
+        recorder.log(f"clusters/{label}/points", rr.Points3D(self.track_xyz[self.track_valid]))
+        recorder.log(f"clusters/{label}/ba_rms_px", rr.Scalars(self.last_ba_rms))
         i = self.last_registered
         if i >= 0:
-            prior = self.camera_of(i)
-            K = np.array([[self.focal(i), 0, self.params[self.cam_index[i]][-2 if prior.model == "PINHOLE" else 1]], [0, self.focal(i), 0], [0, 0, 1]])
-            K[:2, 2] = [(prior.width - 1) / 2, (prior.height - 1) / 2]
-            from sfm.geometry import rotation_to_quaternion
-
-            R_wc = self.R[i].T
-            q = rotation_to_quaternion(R_wc)
-            recorder.log(f"clusters/{label}/cams/{self.names[i]}",
-                         rr.Transform3D(translation=-R_wc @ self.t[i], quaternion=[q[1], q[2], q[3], q[0]]),
-                         rr.Pinhole(image_from_camera=K, resolution=[prior.width, prior.height]))
+            c = self.cam_index[i]
+            log_camera(recorder, f"clusters/{label}/cams/{self.names[i]}", self.R[i], self.t[i],
+                       calibration_matrix(self.priors[c].model, self.params[c]), self.priors[c].width, self.priors[c].height)

@@ -124,19 +124,29 @@ def log_model(recorder: Recorder, prefix: str, recon) -> None:
         return
     import rerun as rr
 
-    from sfm.geometry import rotation_to_quaternion
-
     if recon.points3D:
         xyz = np.array([p.xyz for p in recon.points3D.values()])
         rgb = np.array([p.color for p in recon.points3D.values()])
         recorder.log(f"{prefix}/points", rr.Points3D(xyz, colors=rgb))
     for image in recon.images.values():
         cam = recon.cameras[image.camera_id]
-        world_from_cam = image.cam_from_world_rotation.T
-        q = rotation_to_quaternion(world_from_cam)
-        recorder.log(f"{prefix}/cams/{image.name}",
-                     rr.Transform3D(translation=image.center, quaternion=[q[1], q[2], q[3], q[0]]),
-                     rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width, cam.height]))
+        log_camera(recorder, f"{prefix}/cams/{image.name}", image.cam_from_world_rotation,
+                   image.cam_from_world_translation, cam.K, cam.width, cam.height)
+
+
+def log_camera(recorder: Recorder, entity: str, rotation: np.ndarray, translation: np.ndarray,
+               K: np.ndarray, width: int, height: int) -> None:
+    """A camera given ``cam_from_world`` as Transform3D (world_from_cam) + Pinhole."""
+    if not recorder.enabled:
+        return
+    import rerun as rr
+
+    from sfm.geometry import rotation_to_quaternion
+
+    world_from_cam = rotation.T
+    q = rotation_to_quaternion(world_from_cam)
+    recorder.log(entity, rr.Transform3D(translation=-world_from_cam @ translation, quaternion=[q[1], q[2], q[3], q[0]]),
+                 rr.Pinhole(image_from_camera=K, resolution=[width, height]))
 
 
 def entity_paths(rrd_path: Path) -> set[str]:
