@@ -5,17 +5,13 @@ steps 6 and 8; the paper's final bundle adjustment after merging, section 3 over
 
 Conventions (DESIGN.md): poses are ``cam_from_world`` (x_cam = R X + t, OpenCV axes: x right,
 y down, z forward); GTSAM's ``Pose3`` of a camera is ``world_from_cam`` and is converted only by
-:func:`pose3_from_cam_from_world` and :func:`cam_from_world_from_pose3`. Intrinsics are given per
-camera *group* (several images share one camera) as COLMAP model names and parameter vectors:
-``SIMPLE_PINHOLE (f,cx,cy)``, ``PINHOLE (fx,fy,cx,cy)``, ``SIMPLE_RADIAL (f,cx,cy,k)``,
-``RADIAL (f,cx,cy,k1,k2)``, ``OPENCV (fx,fy,cx,cy,k1,k2,p1,p2)``, with COLMAP's distortion on
-normalised coordinates (u, v): r2 = u²+v², radial = k1 r2 + k2 r2², pixel = f u (1+radial) + cx
-(plus OpenCV's tangential terms). The pixel convention is the caller's, as long as principal
-points and observations agree. Observations are three arrays: image index (M,), point index (M,)
-and pixel (M, 2).
+:func:`pose3_from_cam_from_world` and :func:`cam_from_world_from_pose3`. Intrinsics (COLMAP
+models per camera group), observations (image index (M,), point index (M,), pixel (M, 2)) and
+the numpy projection and reprojection errors are those of :mod:`backend.camera_projection`,
+re-exported here.
 
 Factors: with intrinsics held fixed, ``GenericProjectionFactorCal3DS2`` (pose and point
-variables; Cal3DS2 reproduces every model above exactly). When intrinsics are refined, the
+variables; Cal3DS2 reproduces every supported model exactly). When intrinsics are refined, the
 calibration of each group is ONE variable shared by its images' factors
 (``GeneralSFMFactor2``): ``Cal3Bundler`` (f, k1, k2; principal point constant) for the
 single-focal models refining "focal"/"focal_radial", ``Cal3DS2`` otherwise. Components of the
@@ -25,15 +21,12 @@ exactly as given; fx = fy of single-focal models under "all" is tied by a one-ro
 the C++ factors and ``PinholeCameraCal3Bundler.project`` apply k1 r2 + k2 r2² correctly.)
 Factors are added in a Python loop (~3 µs each; GTSAM has no bulk constructor for them): about
 0.4 s of a 100k-observation BA, whose time goes to GTSAM's linearisation and elimination.
+The robust noise and the Levenberg-Marquardt runs are :mod:`backend.gtsam_solver`'s.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,12 +35,19 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
+from backend.camera_projection import (  # noqa: F401  (re-exported: the BA's camera model)
+    MODEL_NUM_PARAMS,
+    SINGLE_FOCAL_MODELS,
+    ds2_from_params,
+    params_from_ds2,
+    project,
+    reprojection_errors,
+)
+from backend.gtsam_solver import lm_optimizer, optimize_or_keep, robust_noise
+
 logger = logging.getLogger(__name__)
 Array = np.ndarray
 
-#: COLMAP camera models supported here and their number of parameters.
-MODEL_NUM_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
-_SINGLE_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 # Free Cal3DS2 components [fx, fy, s, u0, v0, k1, k2, p1, p2] per model beyond the focal lengths.
 _EXTRA_DS2 = {
     "SIMPLE_PINHOLE": [],
@@ -139,90 +139,8 @@ def cam_from_world_from_pose3(pose: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray
     return rotation, -rotation @ pose.translation()
 
 
-def ds2_from_params(model: str, params: np.ndarray) -> np.ndarray:
-    """Cal3DS2 vector [fx, fy, s, u0, v0, k1, k2, p1, p2] equivalent to COLMAP ``params``."""
-    p = np.asarray(params, dtype=float)
-    if len(p) != MODEL_NUM_PARAMS.get(model, -1):
-        raise ValueError(f"camera model {model!r} with {len(p)} parameters is not supported")
-    if model in _SINGLE_FOCAL:
-        extra = list(p[3:]) + [0.0] * (2 - len(p[3:]))
-        return np.array([p[0], p[0], 0.0, p[1], p[2], *extra, 0.0, 0.0])
-    extra = list(p[4:]) + [0.0] * (4 - len(p[4:]))
-    return np.array([p[0], p[1], 0.0, p[2], p[3], *extra])
-
-
-def params_from_ds2(model: str, ds2: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`ds2_from_params` (single-focal models take the mean of fx and fy)."""
-    if model in _SINGLE_FOCAL:
-        return np.array(
-            [0.5 * (ds2[0] + ds2[1]), ds2[3], ds2[4], *ds2[5 : 5 + MODEL_NUM_PARAMS[model] - 3]]
-        )
-    return np.array([ds2[0], ds2[1], ds2[3], ds2[4], *ds2[5 : 5 + MODEL_NUM_PARAMS[model] - 4]])
-
-
-def project(
-    camera_models: Sequence[str],
-    camera_params: Sequence[Array],
-    image_camera: Array,
-    rotations: Array,
-    translations: Array,
-    points: Array,
-    obs_image: Array,
-    obs_point: Array,
-) -> tuple[Array, Array]:
-    """Pixels (M,2) and depths (M,) of the observed points, vectorised (COLMAP's models)."""
-    ds2 = np.stack([ds2_from_params(m, p) for m, p in zip(camera_models, camera_params)])
-    intr = ds2[np.asarray(image_camera)[obs_image]]
-    x_cam = np.einsum("mij,mj->mi", rotations[obs_image], points[obs_point])
-    x_cam += translations[obs_image]
-    depth = x_cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = x_cam[:, 0] / depth, x_cam[:, 1] / depth
-    r2 = u * u + v * v
-    radial = intr[:, 5] * r2 + intr[:, 6] * r2 * r2
-    p1, p2 = intr[:, 7], intr[:, 8]
-    ud = u * (1 + radial) + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
-    vd = v * (1 + radial) + 2 * p2 * u * v + p1 * (r2 + 2 * v * v)
-    xy = np.stack([intr[:, 0] * ud + intr[:, 2] * vd + intr[:, 3], intr[:, 1] * vd + intr[:, 4]], 1)
-    return xy, depth
-
-
-def reprojection_errors(
-    camera_models: Sequence[str],
-    camera_params: Sequence[Array],
-    image_camera: Array,
-    rotations: Array,
-    translations: Array,
-    points: Array,
-    obs_image: Array,
-    obs_point: Array,
-    obs_xy: Array,
-) -> Array:
-    """Pixel distance (M,) between each observation and its projected point; inf behind camera.
-
-    Same arrays as :func:`bundle_adjust` (without options): use it to filter observations.
-    """
-    cameras = (camera_models, camera_params, image_camera)
-    xy, depth = project(*cameras, rotations, translations, points, obs_image, obs_point)
-    return np.where(depth > 0, np.linalg.norm(xy - obs_xy, axis=1), np.inf)
-
-
 def _rms(err: Array) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
-
-
-def _noise(loss: str, scale: float) -> gtsam.noiseModel.Base:
-    """Isotropic 1 px measurement noise wrapped in the robust loss (scale in pixels)."""
-    base = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
-    estimators = {
-        "huber": gtsam.noiseModel.mEstimator.Huber,
-        "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
-    }
-    if loss == "none":
-        return base
-    if loss not in estimators:
-        raise ValueError(f"unknown loss {loss!r}; use 'huber', 'cauchy' or 'none'")
-    return gtsam.noiseModel.Robust.Create(estimators[loss].Create(scale), base)
 
 
 def _free_ds2(model: str, refine: str) -> list[int]:
@@ -236,7 +154,7 @@ def _free_ds2(model: str, refine: str) -> list[int]:
 
 def _uses_bundler(model: str, refine: str) -> bool:
     """Cal3Bundler (f, k1, k2 variable; principal point constant) fits, else Cal3DS2."""
-    return model in _SINGLE_FOCAL and refine != "all"
+    return model in SINGLE_FOCAL_MODELS and refine != "all"
 
 
 def _add_calibration(graph, values, key: int, model: str, params: Array, refine: str) -> None:
@@ -250,7 +168,7 @@ def _add_calibration(graph, values, key: int, model: str, params: Array, refine:
         values.insert(key, gtsam.Cal3DS2(*ds2))
         held, sigmas = [j not in free for j in range(9)], np.array([ds2[0]] * 5 + [1.0] * 4)
         cal, prior = values.atCal3DS2(key), gtsam.PriorFactorCal3DS2
-    if model in _SINGLE_FOCAL and not _uses_bundler(model, refine):  # tie fx = fy
+    if model in SINGLE_FOCAL_MODELS and not _uses_bundler(model, refine):  # tie fx = fy
         tie_jacobian = np.eye(1, 9) - np.eye(1, 9, 1)
 
         def tie(this, vals, jacobians):
@@ -325,61 +243,6 @@ def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions) 
         graph.add(gtsam.RangeFactorPose3(X(anchors[0]), X(far), d, range_noise))
 
 
-def _optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtOptimizer:
-    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log."""
-    if options.ordering not in ("points_first", "metis", "colamd"):
-        raise ValueError(f"unknown ordering {options.ordering!r}; use 'points_first', 'metis' or 'colamd'")
-    params = gtsam.LevenbergMarquardtParams()
-    if options.ordering == "points_first":
-        # The classic BA ordering: eliminating every point first leaves the reduced camera
-        # system (a Schur complement); no graph partitioning to compute.
-        keys = list(values.keys())
-        ordering = gtsam.Ordering()
-        for key in sorted(keys, key=lambda k: gtsam.Symbol(k).chr() != ord("l")):
-            ordering.push_back(key)
-        params.setOrdering(ordering)
-    else:
-        params.setOrderingType(options.ordering.upper())
-    params.setMaxIterations(options.max_iterations)
-    params.setRelativeErrorTol(options.relative_tolerance)
-    params.setAbsoluteErrorTol(options.absolute_tolerance)
-    level = logging.INFO if options.verbose else logging.DEBUG
-    params.iterationHook = lambda it, before, after: logger.log(
-        level, "LM iteration %d: cost %.6g -> %.6g", it, before, after
-    )
-    return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-
-
-@contextlib.contextmanager
-def _quiet_stdout(what: str):
-    """Send what GTSAM's C++ code prints on stdout (GeneralSFMFactor prints a line per
-    ``CheiralityException`` while LM tries a step that puts a point behind a camera) to the
-    debug log instead of the caller's stdout, which may carry JSON."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 1)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 1)
-            os.close(saved)
-            sink.seek(0)
-            lines = sink.read().decode(errors="replace").splitlines()
-            if lines:
-                logger.debug("%s: GTSAM printed %d lines, e.g. %s", what, len(lines), lines[0])
-
-
-def _optimize(optimizer, values: gtsam.Values, what: str) -> tuple[gtsam.Values, bool]:
-    """Run the optimiser; on a GTSAM error (e.g. an indeterminant system) keep the input."""
-    try:
-        with _quiet_stdout(what):
-            return optimizer.optimize(), True
-    except RuntimeError as exc:
-        logger.warning("%s failed: %s", what, exc)
-        return values, False
-
-
 def bundle_adjust(
     camera_models: Sequence[str],
     camera_params: Sequence[Array],
@@ -416,13 +279,13 @@ def bundle_adjust(
         values.insert(X(i), poses[i])
     for j in seen_points.tolist():
         values.insertPoint3(L(j), points[j])
-    noise = _noise(options.loss, options.loss_scale)
+    noise = robust_noise(options.loss, options.loss_scale)
     _add_projection_factors(graph, values, cameras, obs, groups, noise, refine)
     _add_gauge(graph, values, poses, observed, options)
-    optimizer = _optimizer(graph, values, options)
+    optimizer = lm_optimizer(graph, values, options)
     built_s = time.perf_counter() - start
     logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
-    result, success = _optimize(optimizer, values, "bundle adjustment")
+    result, success = optimize_or_keep(optimizer, values, "bundle adjustment")
     success = success and graph.error(result) <= graph.error(values)
     rot_out, trans_out, pts_out = rotations.copy(), translations.copy(), points.copy()
     for i in set(observed.tolist()) - set(options.fixed_poses):
@@ -492,7 +355,7 @@ def refine_pose(
     cal = gtsam.Cal3DS2(*ds2_from_params(camera_model, camera_params))
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     values.insert(X(0), pose3_from_cam_from_world(rotation, translation))
-    noise = _noise(loss, loss_scale)
+    noise = robust_noise(loss, loss_scale)
     scale = max(float(np.linalg.norm(points - points.mean(0), axis=1).max(initial=0.0)), 1e-9)
     point_noise = gtsam.noiseModel.Isotropic.Sigma(3, _HOLD_SIGMA * scale)
     for j, (point, xy) in enumerate(zip(points, obs_xy)):
@@ -505,8 +368,8 @@ def refine_pose(
         absolute_tolerance=1e-10,
         ordering="colamd",
     )
-    optimizer = _optimizer(graph, values, options)
-    result, success = _optimize(optimizer, values, "pose refinement")
+    optimizer = lm_optimizer(graph, values, options)
+    result, success = optimize_or_keep(optimizer, values, "pose refinement")
     rot, trans = cam_from_world_from_pose3(result.atPose3(X(0)))
     err = reprojection_errors(*cameras, rot[None], trans[None], points, *obs)
     return PoseRefineResult(rot, trans, _rms(err0), _rms(err), optimizer.iterations(), success)

@@ -36,12 +36,9 @@ Conventions:
   in the result; the run goes on. Exact duplicate files are both kept, as COLMAP keeps them,
   with a warning (they make a zero-baseline pair that verification sees as degenerate).
 
-Resuming: images that already have keypoints in ``WORK/database.db`` are skipped. Each image is
-written (camera if new, image row, keypoints, descriptors) in one transaction as soon as its
-worker returns it, so an interrupted run loses only the images in flight. ``WORK/extract.json``
-(written atomically) maps each shared camera's group key to its camera id and records the
-options, so a resumed run puts new images on the cameras it made before; COLMAP's tables hold
-nothing extra.
+Resuming: images that already have keypoints in ``WORK/database.db`` are skipped; each image is
+written as soon as its worker returns it (``sfm.extract_store``, which also keeps
+``WORK/extract.json``), so an interrupted run loses only the images in flight.
 
 Parallelism: a ``ProcessPoolExecutor`` with the ``spawn`` start method (safe with OpenCV's
 threads; a worker killed by the kernel raises ``BrokenProcessPool`` instead of hanging as
@@ -53,7 +50,6 @@ several workers needs the usual ``if __name__ == "__main__":`` guard (the CLI ha
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import logging
 import multiprocessing
@@ -73,6 +69,7 @@ from tqdm import tqdm
 
 from sfm.database import Database
 from sfm.errors import InputError
+from sfm.extract_store import SIDECAR, ExtractWriter
 from sfm.images import BadImageError, ImageInfo, downscale, find_images, probe_image, read_gray
 from sfm.intrinsics import (
     CAMERA_MODES,
@@ -82,13 +79,9 @@ from sfm.intrinsics import (
     read_intrinsics,
     warn_unused_lines,
 )
-from sfm.workspace import DATABASE, read_json, write_json_atomic
+from sfm.workspace import DATABASE
 
 logger = logging.getLogger(__name__)
-
-SIDECAR = "extract.json"
-_FEATURE_OPTIONS = ("max_image_size", "max_num_features", "root_sift", "contrast_threshold",
-                    "edge_threshold")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -305,100 +298,6 @@ def _mapper(num_workers: int, num_jobs: int) -> Iterator[Mapper]:
         pool.shutdown(wait=ok, cancel_futures=True)
 
 
-# ----------------------------------------------------------------------------- database side
-def _options_json(options: ExtractOptions) -> dict[str, Any]:
-    d = dataclasses.asdict(options)
-    d["intrinsics"] = None if options.intrinsics is None else str(options.intrinsics)
-    return d
-
-
-class _Writer:
-    """Writes extracted images into the database and keeps ``extract.json`` in step."""
-
-    def __init__(self, db: Database, sidecar: Path, image_dir: Path, options: ExtractOptions):
-        self.db, self.sidecar, self.options = db, sidecar, options
-        self.image_dir = str(image_dir.resolve())
-        self.image_ids = db.image_id_by_name()
-        self.image_cameras = {r.name: r.camera_id for r in db.read_images().values()}
-        self.cameras = db.read_cameras()
-        self.next_camera_id = max(self.cameras, default=0) + 1
-        data = self._load() if self.image_ids else {}  # a new database: forget old cameras
-        cameras = data.get("cameras")
-        self.camera_ids = {
-            str(k): v for k, v in (cameras.items() if isinstance(cameras, dict) else ())
-            if isinstance(v, int) and v in self.cameras  # a kill may leave ids never committed
-        }  # fmt: skip
-        self.saved_options = data.get("options")
-
-    def _load(self) -> dict:
-        if not self.sidecar.exists():
-            return {}
-        try:
-            data = read_json(self.sidecar)
-            return data if isinstance(data, dict) else {}
-        except (OSError, ValueError) as exc:
-            logger.warning("ignoring unreadable %s: %s", self.sidecar, exc)
-            return {}
-
-    def save(self) -> None:
-        write_json_atomic(self.sidecar, {
-            "version": 1, "image_dir": self.image_dir, "options": _options_json(self.options),
-            "cameras": self.camera_ids,
-        })  # fmt: skip
-
-    def names_with_keypoints(self) -> set[str]:
-        with_kp = self.db.images_with_keypoints()
-        return {n for n, i in self.image_ids.items() if i in with_kp}
-
-    def warn_changed_options(self) -> None:
-        if not isinstance(self.saved_options, dict):
-            return
-        now = _options_json(self.options)
-        changed = [f"{k}={self.saved_options[k]!r} (now {now[k]!r})" for k in _FEATURE_OPTIONS
-                   if k in self.saved_options and self.saved_options[k] != now[k]]  # fmt: skip
-        if changed:
-            logger.warning(
-                "images already in %s keep features extracted with %s; delete the database to "
-                "extract them again", self.db.path, ", ".join(changed),
-            )  # fmt: skip
-
-    def check_reused(self, specs: dict[str, CameraSpec]) -> None:
-        """A camera reused from an earlier run must have the size of its new images."""
-        for name, spec in specs.items():
-            camera_id = self.camera_ids.get(spec.key)
-            cam = self.cameras.get(camera_id) if camera_id is not None else None
-            if cam is not None and (cam.width, cam.height) != (spec.width, spec.height):
-                raise InputError(
-                    f"{name} is {spec.width}x{spec.height} but camera {camera_id}, made for its "
-                    f"group by an earlier run, is {cam.width}x{cam.height}; use camera_mode auto"
-                )
-
-    def _camera_id(self, name: str, spec: CameraSpec) -> int:
-        if name in self.image_cameras:  # an image row without keypoints: keep its camera
-            return self.image_cameras[name]
-        if spec.key in self.camera_ids:
-            return self.camera_ids[spec.key]
-        camera_id = self.next_camera_id
-        self.next_camera_id += 1
-        if spec.shared:  # record before the commit: a kill in between leaves a dangling entry,
-            self.camera_ids[spec.key] = camera_id  # which the next run drops, never a lost key
-            self.save()
-        self.db.add_camera(spec.model, spec.width, spec.height, spec.params,
-                           spec.prior_focal_length, camera_id=camera_id)  # fmt: skip
-        return camera_id
-
-    def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray):
-        with self.db.transaction():
-            camera_id = self._camera_id(name, spec)
-            image_id = self.image_ids.get(name)
-            if image_id is None:
-                image_id = self.db.add_image(name, camera_id)
-            self.db.write_keypoints(image_id, keypoints)
-            self.db.write_descriptors(image_id, descriptors)
-        self.image_ids[name] = image_id
-        self.image_cameras[name] = camera_id
-
-
 # ----------------------------------------------------------------------------- the stage
 def _probe_all(
     jobs: list[_Job], mapper: Mapper, bad: list[tuple[str, str]]
@@ -415,7 +314,7 @@ def _probe_all(
 
 def _extract_all(
     jobs: list[_Job], infos: dict[str, ImageInfo], specs: dict[str, CameraSpec],
-    writer: _Writer, mapper: Mapper, bad: list[tuple[str, str]],
+    writer: ExtractWriter, mapper: Mapper, bad: list[tuple[str, str]],
 ) -> int:  # fmt: skip
     first_by_digest: dict[str, str] = {}
     extracted = 0
@@ -464,7 +363,7 @@ def run_extract(
     bad: list[tuple[str, str]] = []
     extracted = 0
     with Database(workspace / DATABASE) as db:
-        writer = _Writer(db, workspace / SIDECAR, image_dir, options)
+        writer = ExtractWriter(db, workspace / SIDECAR, image_dir, options)
         done = writer.names_with_keypoints()
         todo = [n for n in names if n not in done]
         skipped = len(names) - len(todo)

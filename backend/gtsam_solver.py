@@ -1,0 +1,97 @@
+"""Running GTSAM's Levenberg-Marquardt for :mod:`backend.bundle_adjustment`.
+
+The solver plumbing shared by bundle adjustment and pose refinement: the robust measurement
+noise (Huber, Cauchy or none on an isotropic 1 px sigma), the optimiser with its elimination
+ordering ("points_first": every point eliminated first, the Schur ordering of BA; or GTSAM's
+METIS / COLAMD), stopping rules and an iteration log, and running it with GTSAM's stdout
+chatter sent to the debug log and a GTSAM error (e.g. an indeterminant system) turned into
+"keep the input values". The options are those of :class:`backend.bundle_adjustment.BAOptions`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+import tempfile
+from typing import TYPE_CHECKING
+
+import gtsam
+
+if TYPE_CHECKING:
+    from backend.bundle_adjustment import BAOptions
+
+# The messages are bundle adjustment's: they keep its logger name (and its log configuration).
+logger = logging.getLogger("backend.bundle_adjustment")
+
+
+def robust_noise(loss: str, scale: float) -> gtsam.noiseModel.Base:
+    """Isotropic 1 px measurement noise wrapped in the robust loss (scale in pixels)."""
+    base = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
+    estimators = {
+        "huber": gtsam.noiseModel.mEstimator.Huber,
+        "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+    }
+    if loss == "none":
+        return base
+    if loss not in estimators:
+        raise ValueError(f"unknown loss {loss!r}; use 'huber', 'cauchy' or 'none'")
+    return gtsam.noiseModel.Robust.Create(estimators[loss].Create(scale), base)
+
+
+def lm_optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtOptimizer:
+    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log."""
+    if options.ordering not in ("points_first", "metis", "colamd"):
+        raise ValueError(
+            f"unknown ordering {options.ordering!r}; use 'points_first', 'metis' or 'colamd'"
+        )
+    params = gtsam.LevenbergMarquardtParams()
+    if options.ordering == "points_first":
+        # The classic BA ordering: eliminating every point first leaves the reduced camera
+        # system (a Schur complement); no graph partitioning to compute.
+        keys = list(values.keys())
+        ordering = gtsam.Ordering()
+        for key in sorted(keys, key=lambda k: gtsam.Symbol(k).chr() != ord("l")):
+            ordering.push_back(key)
+        params.setOrdering(ordering)
+    else:
+        params.setOrderingType(options.ordering.upper())
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_tolerance)
+    params.setAbsoluteErrorTol(options.absolute_tolerance)
+    level = logging.INFO if options.verbose else logging.DEBUG
+    params.iterationHook = lambda it, before, after: logger.log(
+        level, "LM iteration %d: cost %.6g -> %.6g", it, before, after
+    )
+    return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+
+
+@contextlib.contextmanager
+def _quiet_stdout(what: str):
+    """Send what GTSAM's C++ code prints on stdout (GeneralSFMFactor prints a line per
+    ``CheiralityException`` while LM tries a step that puts a point behind a camera) to the
+    debug log instead of the caller's stdout, which may carry JSON."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+            sink.seek(0)
+            lines = sink.read().decode(errors="replace").splitlines()
+            if lines:
+                logger.debug("%s: GTSAM printed %d lines, e.g. %s", what, len(lines), lines[0])
+
+
+def optimize_or_keep(optimizer, values: gtsam.Values, what: str) -> tuple[gtsam.Values, bool]:
+    """Run the optimiser; on a GTSAM error (e.g. an indeterminant system) keep the input."""
+    try:
+        with _quiet_stdout(what):
+            return optimizer.optimize(), True
+    except RuntimeError as exc:
+        logger.warning("%s failed: %s", what, exc)
+        return values, False
