@@ -64,10 +64,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     else:
         from sfm.synthetic import run_synth
 
-        try:
-            opts = options_from_args(SynthOptions, args)
-        except ValueError as exc:
-            raise InputError(str(exc)) from exc
+        opts = options_from_args(SynthOptions, args)
         try:
             summary = run_synth(workspace, opts)
         except FileExistsError as exc:
@@ -153,10 +150,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
     from sfm.features import ExtractOptions, run_extract
 
-    try:
-        options = options_from_args(ExtractOptions, args)
-    except ValueError as exc:
-        raise InputError(str(exc)) from exc
+    options = options_from_args(ExtractOptions, args)
     _check_image_dir(args.images)
     result = run_extract(Path(args.images), Path(args.workspace), options)
     with _recorder(args, "extract") as recorder:
@@ -172,10 +166,7 @@ def cmd_match(args: argparse.Namespace) -> int:
 
     from sfm.matching import MatchOptions, run_match
 
-    try:
-        options = options_from_args(MatchOptions, args)
-    except ValueError as exc:
-        raise InputError(str(exc)) from exc
+    options = options_from_args(MatchOptions, args)
     result = run_match(Path(args.workspace), options)
     with _recorder(args, "match") as recorder:
         from sfm.visualize import log_verified_graph
@@ -199,13 +190,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     if args.images is not None:
         _check_image_dir(args.images)
-    try:
-        options = ReconstructOptions(
-            extract=options_from_args(ExtractOptions, args), match=options_from_args(MatchOptions, args),
-            cluster=options_from_args(ClusterOptions, args), mapper=options_from_args(MapperOptions, args),
-            merge=options_from_args(MergeOptions, args))
-    except ValueError as exc:
-        raise InputError(str(exc)) from exc
+    options = ReconstructOptions(
+        extract=options_from_args(ExtractOptions, args), match=options_from_args(MatchOptions, args),
+        cluster=options_from_args(ClusterOptions, args), mapper=options_from_args(MapperOptions, args),
+        merge=options_from_args(MergeOptions, args))
     workspace = Path(args.workspace)
     from sfm.recording import Recorder
 

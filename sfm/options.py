@@ -70,5 +70,10 @@ def add_options(parser: argparse.ArgumentParser, cls: type, flags: dict[str, str
 
 def options_from_args(cls: type[T], args: argparse.Namespace) -> T:
     """The dataclass ``cls`` built from the parsed flags that belong to it."""
+    from sfm.errors import InputError
+
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as exc:  # an option the dataclass rejects is a bad argument (exit 2)
+        raise InputError(str(exc)) from exc
