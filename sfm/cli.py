@@ -130,9 +130,22 @@ def cmd_cluster(args: argparse.Namespace) -> int:
 
 
 def _executor(args: argparse.Namespace):
+    if getattr(args, "executor", "local") == "dask":
+        from sfm.dask_executor import DaskExecutor
+
+        return DaskExecutor(scheduler=args.scheduler, workers=args.workers)
+    if getattr(args, "scheduler", None):
+        raise InputError("--scheduler needs --executor dask")
     from sfm.executors import LocalExecutor
 
     return LocalExecutor(workers=args.workers)
+
+
+def _add_executor_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
+    p.add_argument("--executor", choices=["local", "dask"], default="local",
+                   help="where clusters run: a local process pool, or a Dask cluster (default: local)")
+    p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (default: start a LocalCluster)")
 
 
 def cmd_map(args: argparse.Namespace) -> int:
@@ -275,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("map", help="incremental SfM of each cluster (or of all images) -> sparse/ or clusters/")
     p.add_argument("--workspace", required=True, help="workspace with database.db (and clusters.json)")
-    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
+    _add_executor_flags(p)
     add_options(p, MapperOptions, flags=MAP_FLAGS)
     _add_recording_flags(p)
     p.set_defaults(func=cmd_map)
@@ -300,7 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reconstruct", help="every stage: extract, match, cluster, map, merge")
     p.add_argument("--images", help="image folder (omit to start from an existing database.db)")
     p.add_argument("--workspace", required=True, help="output folder")
-    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
+    _add_executor_flags(p)
     add_options(p, ExtractOptions)
     add_options(p, MatchOptions)
     add_options(p, ClusterOptions, flags={"completeness_ratio": "completeness", "max_overlap": "overlap"})

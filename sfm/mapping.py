@@ -110,7 +110,8 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
     num_images = len({n for p in payloads for n in p.names})  # clusters overlap
-    fields = {"images": num_images, "executor": executor.name, "clusters": per_cluster, "num_clusters": len(payloads),
+    fields = {"images": num_images, "executor": executor.name, "scheduler": getattr(executor, "address", None),
+              "clusters": per_cluster, "num_clusters": len(payloads),
               "mapper_options": asdict(options)}
     if direct:
         flat.sort(key=lambda m: -m["registered"])
