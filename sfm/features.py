@@ -99,8 +99,8 @@ class ExtractOptions:
     num_workers: processes that decode images and run SIFT (0: one per core, fewer when memory
         is short: SIFT needs about 1.7 GB per worker at 3200 px; 1: in-process).
     root_sift: RootSIFT descriptors (L1-normalise, square root), else L2-normalised SIFT.
-    contrast_threshold: OpenCV SIFT contrastThreshold (DoG peaks below it / 3 are dropped;
-        COLMAP's peak threshold corresponds to 0.02).
+    contrast_threshold: OpenCV SIFT contrastThreshold (DoG peaks below it / 3 are dropped);
+        0.02 is COLMAP's default peak threshold (0.02 / 3 octave layers) in the same units.
     edge_threshold: OpenCV SIFT edgeThreshold (curvature ratio limit; COLMAP's is 10 too).
     """
 
@@ -110,7 +110,7 @@ class ExtractOptions:
     intrinsics: Path | None = None
     num_workers: int = 0
     root_sift: bool = True
-    contrast_threshold: float = 0.04
+    contrast_threshold: float = 0.02
     edge_threshold: float = 10.0
 
     def __post_init__(self) -> None:

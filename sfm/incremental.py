@@ -77,17 +77,28 @@ def two_view_score(state: MapperState, i: int, j: int, R: np.ndarray, t: np.ndar
     return int(good.sum()), float(np.median(angles))
 
 
-def _try_initial_pair(state: MapperState, min_angle: float, tried: set) -> bool:
-    """Find and reconstruct an initial pair among unregistered images (most inliers first)."""
+def _try_initial_pair(state: MapperState, tried: set) -> bool:
+    """Find and reconstruct an initial pair among unregistered images.
+
+    Candidates are the pairs with the most inliers (at least ``init_min_num_inliers`` when any
+    has that many), up to ``init_max_pairs``; each is reconstructed once (E, two-view
+    triangulation).  The pair with the most well-triangulated points among those whose median
+    triangulation angle reaches ``init_min_tri_angle`` wins; if none does, the angle is halved,
+    up to three times (COLMAP relaxes twice; a camera moving forward along a street sees median
+    angles of 2-3 degrees even between frames a few steps apart, and BA widens the baseline as
+    the model grows)."""
     opts = state.opts
     cands = [
         (len(m), i, j, m)
         for (i, j), (m, config) in state.pair_matches.items()
-        if not state.registered[i] and not state.registered[j] and (i, j) not in tried
-        and config not in PLANAR_CONFIGS and len(m) >= max(opts.abs_pose_min_num_inliers, opts.min_num_matches)
+        if not state.registered[i] and not state.registered[j] and not state.used[i] and not state.used[j]
+        and (i, j) not in tried and config not in PLANAR_CONFIGS
+        and len(m) >= max(opts.abs_pose_min_num_inliers, opts.min_num_matches)
     ]
     cands.sort(key=lambda c: (-c[0], c[1], c[2]))
-    best = None
+    if sum(c[0] >= opts.init_min_num_inliers for c in cands) >= 1:
+        cands = [c for c in cands if c[0] >= opts.init_min_num_inliers]
+    evaluated = []
     for n_inl, i, j, m in cands[: opts.init_max_pairs]:
         rel = _relative_pose(state, i, j, m, opts.seed)
         if rel is None:
@@ -95,14 +106,17 @@ def _try_initial_pair(state: MapperState, min_angle: float, tried: set) -> bool:
         R, t, inl = rel
         score, angle = two_view_score(state, i, j, R, t, m[inl])
         log.debug("init candidate %s-%s: %d inliers, median angle %.1f deg, %d points", state.names[i], state.names[j], n_inl, angle, score)
-        if angle >= min_angle and score >= opts.abs_pose_min_num_inliers and (best is None or score > best[0]):
-            best = (score, i, j, R, t)
-    if best is None:
-        return False
-    _, i, j, R, t = best
-    tried.add((i, j))
-    state.start_model(i, j, R, t)
-    return True
+        if score >= opts.abs_pose_min_num_inliers:
+            evaluated.append((score, angle, i, j, R, t))
+    for min_angle in (opts.init_min_tri_angle, opts.init_min_tri_angle / 2, opts.init_min_tri_angle / 4,
+                      opts.init_min_tri_angle / 8):
+        ok = [e for e in evaluated if e[1] >= min_angle]
+        if ok:
+            score, angle, i, j, R, t = max(ok, key=lambda e: (e[0], -e[2], -e[3]))
+            tried.add((i, j))
+            state.start_model(i, j, R, t)
+            return True
+    return False
 
 
 def _register_next(state: MapperState) -> bool:
@@ -143,12 +157,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
     models: list[Reconstruction] = []
     tried: set = set()
     while len(models) < opts.max_num_models:
-        started = False
-        for angle in (opts.init_min_tri_angle, opts.init_min_tri_angle / 2, opts.init_min_tri_angle / 4):
-            if _try_initial_pair(state, angle, tried):
-                started = True
-                break
-        if not started:
+        if not _try_initial_pair(state, tried):
             break
         last_global = state.num_registered
         state.log_progress(recorder)

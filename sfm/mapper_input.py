@@ -48,6 +48,8 @@ class MapperOptions:
     min_num_matches: pairs with fewer verified inliers are ignored.
     init_min_tri_angle: median triangulation angle (degrees) wanted of the initial pair; it is
         halved twice if no pair reaches it (COLMAP: 16).
+    init_min_num_inliers: inliers an initial pair should have, when some pair has them
+        (COLMAP: 100).
     init_max_pairs: initial-pair candidates examined per attempt (most inliers first).
     abs_pose_min_num_inliers: PnP inliers needed to register an image (COLMAP: 30).
     abs_pose_min_inlier_ratio: share of PnP inliers needed (COLMAP: 0.25).
@@ -70,7 +72,8 @@ class MapperOptions:
 
     min_num_matches: int = 15
     init_min_tri_angle: float = 16.0
-    init_max_pairs: int = 30
+    init_min_num_inliers: int = 100
+    init_max_pairs: int = 100
     abs_pose_min_num_inliers: int = 30
     abs_pose_min_inlier_ratio: float = 0.25
     max_reproj_error: float = 4.0
