@@ -54,7 +54,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         sims = anchor_from_model(plan, edges)
         recorder.log_cluster_graph([len(m.model.images) for m in models], [(a, b) for a, b, _ in plan.edges],
                                    anchor=plan.anchor, entity=f"graph/clusters/merge{c}" if c else "graph/clusters/merge")
-        for node in plan.clusters:
+        for node in plan.clusters if recorder.enabled else ():
             recorder.set_time("merge_layer", plan.layer[node])
             moved = models[node].model.copy()
             moved.transform(sims[node])
