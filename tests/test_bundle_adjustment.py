@@ -1,7 +1,9 @@
-"""Bundle adjustment (backend/bundle_adjustment.py) and the BAL reader (backend/bal.py).
+"""Bundle adjustment (backend/bundle_adjustment.py): projection, gauge, noise, robust losses,
+fixed parameters, intrinsics refinement and option checks.
 
-Synthetic scenes: a ring of cameras looking at a cube of points, every point seen by every
-camera, observations exact or with Gaussian pixel noise; known answers, tight tolerances.
+Synthetic scenes (_helpers_bundle_adjustment.py): a ring of cameras looking at a cube of points,
+every point seen by every camera, observations exact or with Gaussian pixel noise; known answers,
+tight tolerances. Pose-only refinement is in test_pose_refinement.py, the BAL reader in test_bal.py.
 """
 
 from __future__ import annotations
@@ -11,9 +13,9 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 import pytest
+from _helpers_bundle_adjustment import perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
-from backend.bal import read_bal
 from backend.bundle_adjustment import (
     BAOptions,
     bundle_adjust,
@@ -21,59 +23,13 @@ from backend.bundle_adjustment import (
     ds2_from_params,
     pose3_from_cam_from_world,
     project,
-    refine_pose,
     reprojection_errors,
 )
 
-SIMPLE_RADIAL = ("SIMPLE_RADIAL", np.array([500.0, 320.0, 240.0, -0.05]))
 # a longer focal length: with 500 points and 0.5 px noise, pose and focal noise floors are
 # ~0.02 deg and ~0.03 %, well below the tolerances the noisy tests check
 LONG_FOCAL = ("SIMPLE_RADIAL", np.array([1000.0, 640.0, 480.0, -0.05]))
 EXACT = BAOptions(loss="none", relative_tolerance=1e-12, absolute_tolerance=0.0)
-
-
-def ring_scene(model=SIMPLE_RADIAL, n_images=10, n_points=300, noise=0.0, seed=0) -> dict:
-    """Cameras on a (wavy) ring of radius 6 looking at the origin; points in a 3 m cube."""
-    rng = np.random.default_rng(seed)
-    rotations, translations = [], []
-    for a in np.linspace(0, 2 * np.pi, n_images, endpoint=False):
-        centre = np.array([6 * np.cos(a), 6 * np.sin(a), 0.5 * np.sin(3 * a)])
-        z = -centre / np.linalg.norm(centre)
-        x = np.cross([0.0, 0.0, 1.0], z)
-        x /= np.linalg.norm(x)
-        rotation = np.stack([x, np.cross(z, x), z])
-        rotations.append(rotation)
-        translations.append(-rotation @ centre)
-    scene = {
-        "camera_models": [model[0]],
-        "camera_params": [model[1].copy()],
-        "image_camera": np.zeros(n_images, int),
-        "rotations": np.array(rotations),
-        "translations": np.array(translations),
-        "points": rng.uniform(-1.5, 1.5, (n_points, 3)),
-        "obs_image": np.repeat(np.arange(n_images), n_points),
-        "obs_point": np.tile(np.arange(n_points), n_images),
-    }
-    xy, _ = project(**scene)
-    scene["obs_xy"] = xy + rng.normal(0.0, noise, xy.shape)
-    return scene
-
-
-def perturb(scene: dict, seed=1, rot_deg=1.0, trans_frac=0.03, point_sigma=0.05, keep=(0,)) -> dict:
-    """Rotate each pose by ~rot_deg, move it by trans_frac of |t|, jitter the points."""
-    rng = np.random.default_rng(seed)
-    rotations, translations = scene["rotations"].copy(), scene["translations"].copy()
-    for i in range(len(rotations)):
-        if i in keep:
-            continue
-        axis = rng.normal(size=3)
-        delta = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.deg2rad(rot_deg))
-        rotations[i] = delta.as_matrix() @ rotations[i]
-        translations[i] += (
-            rng.normal(size=3) / np.sqrt(3) * trans_frac * np.linalg.norm(translations[i])
-        )
-    points = scene["points"] + rng.normal(0.0, point_sigma, scene["points"].shape)
-    return {**scene, "rotations": rotations, "translations": translations, "points": points}
 
 
 def centres(rotations, translations):
@@ -342,43 +298,6 @@ def test_camera_groups_share_intrinsics():
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
 
 
-def test_refine_pose_recovers_a_perturbed_pose():
-    truth = ring_scene(n_points=200)
-    image = 4
-    rows = truth["obs_image"] == image
-    model, params = truth["camera_models"][0], truth["camera_params"][0]
-    start = perturb(truth, rot_deg=2.0, trans_frac=0.05, keep=())
-    result = refine_pose(
-        model,
-        params,
-        start["rotations"][image],
-        start["translations"][image],
-        truth["points"][truth["obs_point"][rows]],
-        truth["obs_xy"][rows],
-    )
-    assert result.success and result.initial_rms > 5 and result.final_rms < 1e-8
-    np.testing.assert_allclose(result.rotation, truth["rotations"][image], atol=1e-10)
-    np.testing.assert_allclose(result.translation, truth["translations"][image], atol=1e-9)
-
-
-def test_refine_pose_with_noise_and_outliers():
-    truth = ring_scene(n_points=300, noise=0.5, seed=21)
-    rows = np.flatnonzero(truth["obs_image"] == 2)
-    xy = truth["obs_xy"][rows].copy()
-    xy[::10] += 40.0
-    start = perturb(truth, keep=())
-    result = refine_pose(
-        "SIMPLE_RADIAL",
-        truth["camera_params"][0],
-        start["rotations"][2],
-        start["translations"][2],
-        truth["points"][truth["obs_point"][rows]],
-        xy,
-        loss="cauchy",
-    )
-    angle = Rotation.from_matrix(result.rotation @ truth["rotations"][2].T).magnitude()
-    assert np.rad2deg(angle) < 0.05
-
 
 def test_bad_options_raise():
     scene = ring_scene(n_images=3, n_points=20)
@@ -390,39 +309,3 @@ def test_bad_options_raise():
         bundle_adjust(**{**scene, "obs_image": scene["obs_image"][:0]})
     with pytest.raises(ValueError, match="not supported"):
         bundle_adjust(**{**scene, "camera_models": ["FISHEYE"]})
-
-
-def test_bal_reader_agrees_with_gtsam(shared_data):
-    path = shared_data / "bal_small" / "door_initialization.bal"
-    problem = read_bal(path)
-    assert (
-        len(problem.rotations) == 12 and len(problem.points) == 2140 and len(problem.obs_xy) == 4519
-    )
-    sfm_data = gtsam.SfmData.FromBalFile(str(path))
-    for i in (0, 11):
-        rotation, translation = cam_from_world_from_pose3(sfm_data.camera(i).pose())
-        np.testing.assert_allclose(problem.rotations[i], rotation, atol=1e-12)
-        np.testing.assert_allclose(problem.translations[i], translation, atol=1e-12)
-        assert problem.camera_params[i][0] == pytest.approx(sfm_data.camera(i).calibration().fx())
-    track = sfm_data.track(5)
-    np.testing.assert_allclose(problem.points[5], track.point3())
-    cam, xy = track.measurement(0)
-    rows = np.flatnonzero((problem.obs_point == 5) & (problem.obs_image == cam))
-    np.testing.assert_allclose(problem.obs_xy[rows[0]], xy)
-
-
-@pytest.mark.parametrize(
-    "name, refine, initial, bound",
-    [
-        ("door_initialization.bal", "focal_radial", 2.5786, 0.47),
-        ("dubrovnik-3-7-pre.txt", "none", 17.0579, 0.52),
-    ],
-)
-def test_bal_problems_converge(shared_data, name, refine, initial, bound):
-    problem = read_bal(shared_data / "bal_small" / name)
-    result = bundle_adjust(
-        **problem.arrays(), options=BAOptions(loss="none", refine_intrinsics=refine)
-    )
-    assert result.success
-    assert result.initial_rms == pytest.approx(initial, abs=1e-4)
-    assert result.final_rms < bound < result.initial_rms

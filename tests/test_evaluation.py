@@ -1,72 +1,28 @@
-"""Tests of sfm.evaluation, sfm.ground_truth and sfm.alignment on synthetic scenes with known
-answers and on the real GT tables."""
+"""Tests of sfm.evaluation (pose errors, pair errors, AUC, structure metrics) on synthetic scenes
+with known answers. The alignment is tested in test_alignment.py, the GT input in
+test_ground_truth.py."""
 
 from __future__ import annotations
 
 import json
 import math
 from itertools import combinations
-from pathlib import Path
 
 import numpy as np
 import pytest
+from _helpers_evaluation import N_CAMS, SIM_EST_FROM_GT, _estimate, _gt_of, _ring_scene
 
-from sfm.alignment import align_centers, default_alignment_threshold, scene_extent
-from sfm.camera_models import project
 from sfm.evaluation import auc, evaluate, relative_pose_errors
 from sfm.geometry import (
-    Sim3,
     angle_between_deg,
-    look_at,
     quaternion_to_rotation,
     rotation_about_axis,
     rotation_angle_deg,
-    umeyama,
 )
-from sfm.ground_truth import GTPose, gt_from_reconstruction, read_gt_table
-from sfm.model import Camera, Image, Reconstruction
+from sfm.ground_truth import GTPose
+from sfm.model import Image, Reconstruction
 
-DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
-N_CAMS = 20
 N_PAIRS = N_CAMS * (N_CAMS - 1) // 2
-SIM_EST_FROM_GT = Sim3(
-    3.7, rotation_about_axis([0.3, -1.0, 0.5], 73.0), np.array([4.0, -2.5, 11.0])
-)
-UP = np.array([0.0, 0.0, 1.0])
-
-
-def _ring_scene(n: int = N_CAMS, num_points: int = 30, seed: int = 0) -> Reconstruction:
-    """``n`` cameras on a wavy ring of radius 5 looking at the origin, points near the origin
-    seen by every camera at their exact projections (zero reprojection error)."""
-    rng = np.random.default_rng(seed)
-    recon = Reconstruction()
-    recon.add_camera(Camera(1, "PINHOLE", 640, 480, [500.0, 510.0, 319.5, 239.5]))
-    points = rng.uniform(-1.0, 1.0, size=(num_points, 3))
-    for k in range(n):
-        a = 2 * np.pi * k / n
-        center = np.array([5 * np.cos(a), 5 * np.sin(a), 1.0 + 0.5 * np.sin(3 * a)])
-        rotation, translation = look_at(center, np.zeros(3), UP)
-        kps = project("PINHOLE", recon.cameras[1].params, points @ rotation.T + translation)
-        recon.add_image(Image(k + 1, f"seq/img_{k:03d}.jpg", 1, rotation, translation, kps))
-    for p, xyz in enumerate(points):
-        recon.add_point3D(xyz, [(k + 1, p) for k in range(n)])
-    return recon
-
-
-def _gt_of(recon: Reconstruction) -> dict[str, GTPose]:
-    k = recon.cameras[1].K
-    return {
-        im.name: GTPose(
-            im.name, 640, 480, k, im.cam_from_world_rotation, im.cam_from_world_translation
-        )
-        for im in recon.images.values()
-    }
-
-
-def _estimate(recon: Reconstruction) -> Reconstruction:
-    est = recon.copy()
-    est.transform(SIM_EST_FROM_GT)
-    return est
 
 
 def _arrays(est: Reconstruction, gt: dict[str, GTPose]):
@@ -85,10 +41,6 @@ def _set_rotation_keep_center(image: Image, rotation: np.ndarray) -> None:
     center = image.center
     image.cam_from_world_rotation = rotation
     image.cam_from_world_translation = -rotation @ center
-
-
-def _set_center(image: Image, center: np.ndarray) -> None:
-    image.cam_from_world_translation = -image.cam_from_world_rotation @ center
 
 
 # ------------------------------------------------------------------------- (a) exact model
@@ -209,70 +161,6 @@ def test_extra_images_not_in_gt_are_only_counted():
     assert result.num_registered_not_in_gt == 1 and result.auc[1] == pytest.approx(1.0, abs=1e-9)
 
 
-# ------------------------------------------------------------------------- (d) outliers
-def test_outlier_center_does_not_spoil_alignment():
-    gt_recon = _ring_scene()
-    gt = _gt_of(gt_recon)
-    est = _estimate(gt_recon)
-    bad = est.image_by_name("seq/img_011.jpg")
-    _set_center(bad, bad.center + np.array([60.0, -40.0, 25.0]))
-    result = evaluate(est, gt)
-    assert result.num_alignment_inliers == N_CAMS - 1
-    for name, err in result.center_errors.items():
-        assert err > 1.0 if name == bad.name else err < 1e-12
-    assert max(result.rotation_errors_deg.values()) < 1e-9  # its rotation was not touched
-    assert result.alignment.scale == pytest.approx(1 / 3.7, rel=1e-12)
-
-
-def test_align_centers_many_outliers_random_sampling_is_exact_and_deterministic():
-    rng = np.random.default_rng(5)
-    gt_c = rng.normal(size=(60, 3)) * 10.0  # C(60, 3) > max_iterations: random samples
-    est_c = SIM_EST_FROM_GT.apply(gt_c)
-    outliers = rng.choice(60, 20, replace=False)
-    est_c[outliers] += rng.normal(size=(20, 3)) * 30.0
-    sim, mask = align_centers(est_c, gt_c, seed=3)
-    sim2, mask2 = align_centers(est_c, gt_c, seed=3)
-    assert np.array_equal(mask, mask2) and sim.scale == sim2.scale
-    np.testing.assert_array_equal(sim.rotation, sim2.rotation)
-    assert mask.sum() == 40 and not mask[outliers].any()
-    inv = SIM_EST_FROM_GT.inverse()
-    assert sim.scale == pytest.approx(inv.scale, rel=1e-12)
-    np.testing.assert_allclose(sim.rotation, inv.rotation, atol=1e-12)
-    np.testing.assert_allclose(sim.apply(est_c[mask]), gt_c[mask], atol=1e-10)
-
-
-def test_align_centers_small_inputs_and_threshold():
-    rng = np.random.default_rng(1)
-    gt_c = rng.normal(size=(3, 3))
-    est_c = SIM_EST_FROM_GT.apply(gt_c) + rng.normal(size=(3, 3)) * 0.01
-    sim, mask = align_centers(est_c, gt_c, threshold=1e3)
-    plain = umeyama(est_c, gt_c)
-    assert sim.scale == pytest.approx(plain.scale, rel=1e-12) and mask.all()
-    np.testing.assert_allclose(sim.rotation, plain.rotation, atol=1e-12)
-    for n in (0, 1, 2):
-        sim, mask = align_centers(gt_c[:n], gt_c[:n])
-        assert sim is None and mask.shape == (n,) and not mask.any()
-    with pytest.raises(ValueError):
-        align_centers(np.zeros((4, 3)), np.zeros((5, 3)))
-    # default threshold: 5% of the median distance to the median
-    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    ring = np.stack([5 * np.cos(angles), 5 * np.sin(angles), np.zeros(8)], axis=1)
-    assert default_alignment_threshold(ring) == pytest.approx(0.25)
-    assert scene_extent(ring) == pytest.approx(10.0)
-
-
-def test_collinear_centers_still_fit_and_are_flagged():
-    recon = Reconstruction()
-    recon.add_camera(Camera(1, "PINHOLE", 640, 480, [500.0, 500.0, 319.5, 239.5]))
-    for k in range(6):  # a straight street: centres on the x axis, looking along +y
-        center = np.array([2.0 * k, 0.0, 0.0])
-        rotation, translation = look_at(center, center + np.array([0.0, 1.0, 0.0]), UP)
-        recon.add_image(Image(k + 1, f"s{k}.jpg", 1, rotation, translation))
-    gt = gt_from_reconstruction(recon)
-    result = evaluate(_estimate(recon), gt)
-    assert result.alignment_degenerate
-    assert max(result.center_errors.values()) < 1e-12
-    assert result.auc[1] == pytest.approx(1.0, abs=1e-9)  # relative poses need no alignment
 
 
 # ------------------------------------------------------------------------- pair errors
@@ -370,100 +258,6 @@ def test_auc_matches_reference_implementation():
         thresholds = [1.0, 2.5, 5.0, 10.0]
         np.testing.assert_allclose(auc(e, thresholds), _hloc_pose_auc(e, thresholds), atol=1e-12)
 
-
-# ------------------------------------------------------------------------- GT input
-def test_gt_from_reconstruction_skips_unregistered():
-    recon = _ring_scene(n=6, num_points=0)
-    recon.images[3].registered = False
-    gt = gt_from_reconstruction(recon)
-    assert sorted(gt) == [f"seq/img_{k:03d}.jpg" for k in (0, 1, 3, 4, 5)]
-    pose = gt["seq/img_004.jpg"]
-    np.testing.assert_array_equal(pose.K, recon.cameras[1].K)
-    np.testing.assert_allclose(pose.center, recon.images[5].center, atol=1e-15)
-    assert (pose.width, pose.height) == (640, 480)
-    result = evaluate(recon, gt_from_reconstruction(_ring_scene(n=6, num_points=0)))
-    assert result.registered_ratio == pytest.approx(5 / 6)
-    assert math.isnan(result.mean_reprojection_error)
-    json.dumps(result.to_dict(), allow_nan=False)
-
-
-def test_read_gt_table_parses_and_rejects(tmp_path):
-    good = "a/b/c.png 640 480 500 501 319.5 239.5 1 0 0 0 1 2 3"
-    f = tmp_path / "gt.txt"
-    other = "d.png 10 20 5 5 4.5 9.5 0 0 0 2 0 0 -1"
-    f.write_text(f"# comment\n\n{good}\n  # indented comment\n{other}\n")
-    gt = read_gt_table(f)
-    assert list(gt) == ["a/b/c.png", "d.png"]
-    p = gt["a/b/c.png"]
-    np.testing.assert_array_equal(p.K, [[500, 0, 319.5], [0, 501, 239.5], [0, 0, 1]])
-    np.testing.assert_array_equal(p.rotation, np.eye(3))
-    np.testing.assert_array_equal(p.center, [-1.0, -2.0, -3.0])
-    # quaternion (0,0,0,2) is normalised: 180 degrees about z
-    np.testing.assert_allclose(gt["d.png"].rotation, np.diag([-1.0, -1.0, 1.0]), atol=1e-15)
-    with pytest.raises(ValueError):
-        p.rotation[0, 0] = 2.0  # read-only
-    bad_lines = {
-        "columns": "x.png 640 480 500 500 1 1 1 0 0 0 1 2",
-        "number": "x.png 640 480 500 abc 1 1 1 0 0 0 1 2 3",
-        "size": "x.png 640.5 480 500 500 1 1 1 0 0 0 1 2 3",
-        "focal": "x.png 640 480 -500 500 1 1 1 0 0 0 1 2 3",
-        "quaternion": "x.png 640 480 500 500 1 1 0 0 0 0 1 2 3",
-        "nan": "x.png 640 480 500 500 1 1 1 0 0 0 nan 2 3",
-        "twice": good,
-    }
-    for what, line in bad_lines.items():
-        bad = tmp_path / f"bad_{what}.txt"
-        bad.write_text(f"# header\n{good}\n{line}\n")
-        with pytest.raises(ValueError, match=rf"bad_{what}\.txt:3"):
-            read_gt_table(bad)
-
-
-def _real_gt(name: str) -> Path:
-    path = DATA / name / "gt" / "cameras_gt_opencv.txt"
-    if not path.is_file():
-        pytest.skip(f"real data absent: {path.resolve()} not found (../shared/data)")
-    return path
-
-
-@pytest.mark.parametrize("name, count", [("lund_door", 12), ("temple_ring", 47)])
-def test_read_real_gt_tables(name, count):
-    gt = read_gt_table(_real_gt(name))
-    assert len(gt) == count
-    for pose in gt.values():
-        assert pose.K[0, 0] > 0 and pose.K[1, 1] > 0 and pose.K[2, 2] == 1.0
-        assert 0 < pose.K[0, 2] < pose.width and 0 < pose.K[1, 2] < pose.height
-        np.testing.assert_allclose(pose.rotation @ pose.rotation.T, np.eye(3), atol=1e-12)
-        assert np.linalg.det(pose.rotation) == pytest.approx(1.0, abs=1e-12)
-    # evaluating the GT against itself is perfect
-    recon = Reconstruction()
-    for k, pose in enumerate(gt.values()):
-        recon.add_camera(Camera(k + 1, "PINHOLE", pose.width, pose.height,
-                                [pose.K[0, 0], pose.K[1, 1], pose.K[0, 2], pose.K[1, 2]]))
-        recon.add_image(Image(k + 1, pose.name, k + 1, pose.rotation, pose.translation))
-    result = evaluate(_estimate(recon), gt)
-    assert result.auc[1] == pytest.approx(1.0, abs=1e-9) and result.median_rotation_error_deg < 1e-9
-
-
-def test_temple_ring_table_agrees_with_middlebury_parameters():
-    path = _real_gt("temple_ring")
-    par = path.parent / "templeR_par.txt"
-    if not par.is_file():
-        pytest.skip(f"{par} not found")
-    gt = read_gt_table(path)
-    lines = par.read_text().split("\n")[1:]
-    checked = 0
-    for line in lines:
-        tok = line.split()
-        if len(tok) != 22:
-            continue
-        values = np.array([float(v) for v in tok[1:]])
-        k, r, t = values[:9].reshape(3, 3), values[9:18].reshape(3, 3), values[18:]
-        pose = gt[tok[0]]
-        np.testing.assert_allclose(pose.rotation, r, atol=1e-8)
-        np.testing.assert_allclose(pose.translation, t, atol=1e-9)
-        np.testing.assert_allclose(pose.K, k, atol=1e-6)
-        checked += 1
-    assert checked == 47
 
 
 def test_absolute_rotation_angles_accurate_at_every_angle():
