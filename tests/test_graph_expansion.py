@@ -5,6 +5,7 @@ from __future__ import annotations
 import networkx as nx
 import numpy as np
 import pytest
+from _helpers_graph import random_graphs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
@@ -12,24 +13,6 @@ from scipy.spatial import cKDTree
 from graph.expansion import ExpansionResult, expand_clusters, lost_edges_by_pair
 from graph.image_graph import ImageGraph, build_image_graph
 from graph.partition import labels_from_clusters, partition_graph
-
-
-@st.composite
-def random_graphs(draw, max_nodes: int = 120) -> ImageGraph:
-    """Erdos-Renyi or random geometric weighted graphs, sparse to dense, often disconnected."""
-    n = draw(st.integers(min_value=1, max_value=max_nodes))
-    rng = np.random.default_rng(draw(st.integers(min_value=0, max_value=2**32 - 1)))
-    if draw(st.booleans()):
-        ii, jj = np.triu_indices(n, 1)
-        keep = rng.random(ii.size) < draw(st.floats(min_value=0.0, max_value=0.3))
-        ii, jj = ii[keep], jj[keep]
-    else:
-        pts = rng.random((n, 2))
-        radius = draw(st.floats(min_value=0.05, max_value=0.4))
-        pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray").reshape(-1, 2)
-        ii, jj = pairs[:, 0], pairs[:, 1]
-    # few distinct weights so that ties in the "strongest edges first" order are exercised
-    return build_image_graph(n, ii, jj, rng.integers(1, 6, ii.size) * 20)
 
 
 def brute_force_lost(graph: ImageGraph, cores: list[np.ndarray]):
@@ -130,7 +113,7 @@ def check_expansion(graph, cores, result: ExpansionResult, c_ratio: float, o_max
 
 @settings(max_examples=100, deadline=None)
 @given(
-    random_graphs(),
+    random_graphs(distinct_weights=False),
     st.integers(min_value=2, max_value=30),
     st.floats(min_value=0.0, max_value=1.5),
     st.integers(min_value=1, max_value=8),

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+from _helpers_graph import random_graphs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.sparse.csgraph import connected_components as cc_labels
@@ -209,25 +210,8 @@ def test_fragments_merge_into_strongest_neighbour_within_the_bound():
     ]
 
 
-@st.composite
-def random_graphs(draw, max_nodes: int = 150) -> ImageGraph:
-    """Erdos-Renyi or random geometric weighted graphs, sparse to dense, often disconnected."""
-    n = draw(st.integers(min_value=1, max_value=max_nodes))
-    rng = np.random.default_rng(draw(st.integers(min_value=0, max_value=2**32 - 1)))
-    if draw(st.booleans()):
-        ii, jj = np.triu_indices(n, 1)
-        keep = rng.random(ii.size) < draw(st.floats(min_value=0.0, max_value=0.3))
-        ii, jj = ii[keep], jj[keep]
-    else:
-        pts = rng.random((n, 2))
-        radius = draw(st.floats(min_value=0.05, max_value=0.4))
-        pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray").reshape(-1, 2)
-        ii, jj = pairs[:, 0], pairs[:, 1]
-    return build_image_graph(n, ii, jj, rng.integers(1, 300, ii.size))
-
-
 @settings(max_examples=100, deadline=None)
-@given(random_graphs(), st.integers(min_value=1, max_value=40), st.integers(0, 3))
+@given(random_graphs(max_nodes=150), st.integers(min_value=1, max_value=40), st.integers(0, 3))
 def test_partition_properties_on_random_graphs(g, s_max, seed):
     clusters = partition_graph(g, s_max, seed=seed)
     assert_valid_partition(g, clusters, s_max)
