@@ -40,19 +40,30 @@ def make_options(**options) -> ReconstructOptions:
 
 
 def reconstruct(images: str | Path | None, workspace: str | Path, workers: int = 0, recording: bool = True,
+                executor: str = "local", scheduler: str | None = None,
                 **options) -> tuple[list[Reconstruction], dict]:
     """Run every stage; return the final models (``WORK/sparse/N``, largest first) and the
-    report.  ``images=None`` starts from an existing ``WORK/database.db``.
+    report.  ``images=None`` starts from an existing ``WORK/database.db``.  ``executor="dask"``
+    runs extraction, matching and the clusters on Dask (``scheduler="tcp://host:port"``, or a
+    LocalCluster of ``workers`` processes).
 
     >>> models, report = reconstruct("photos", "work", max_cluster_size=50, seed=0)  # doctest: +SKIP
     """
     from sfm.executors import LocalExecutor
 
+    if executor == "dask":
+        from sfm.dask_executor import DaskExecutor
+
+        runner = DaskExecutor(scheduler, workers)
+    elif executor == "local" and scheduler is None:
+        runner = LocalExecutor(workers)
+    else:
+        raise ValueError(f"executor must be 'local' or 'dask' (scheduler only with dask), got {executor!r}")
     workspace = Path(workspace)
     recorder = Recorder(workspace / "recording.rrd", workspace) if recording else Recorder.disabled()
-    with recorder:
+    with recorder, runner:
         report = run_reconstruct(workspace, Path(images) if images is not None else None, make_options(**options),
-                                 LocalExecutor(workers), recorder)
+                                 runner, recorder)
     sparse = workspace / "sparse"
     folders = sorted((d for d in sparse.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
     return [read_model(d) for d in folders], report

@@ -133,18 +133,19 @@ def _executor(args: argparse.Namespace):
     if getattr(args, "executor", "local") == "dask":
         from sfm.dask_executor import DaskExecutor
 
-        return DaskExecutor(scheduler=args.scheduler, workers=args.workers)
+        return DaskExecutor(scheduler=args.scheduler, workers=getattr(args, "workers", 0) or getattr(args, "num_workers", 0))
     if getattr(args, "scheduler", None):
         raise InputError("--scheduler needs --executor dask")
     from sfm.executors import LocalExecutor
 
-    return LocalExecutor(workers=args.workers)
+    return LocalExecutor(workers=getattr(args, "workers", 0))
 
 
-def _add_executor_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
+def _add_executor_flags(p: argparse.ArgumentParser, workers: bool = True) -> None:
+    if workers:
+        p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
     p.add_argument("--executor", choices=["local", "dask"], default="local",
-                   help="where clusters run: a local process pool, or a Dask cluster (default: local)")
+                   help="where the work runs: local processes, or a Dask cluster (default: local)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (default: start a LocalCluster)")
 
 
@@ -152,8 +153,8 @@ def cmd_map(args: argparse.Namespace) -> int:
     from sfm.mapping import run_map
 
     options = options_from_args(MapperOptions, args)
-    with _recorder(args, "map") as recorder:
-        result = run_map(Path(args.workspace), options, recorder, _executor(args))
+    with _recorder(args, "map") as recorder, _executor(args) as executor:
+        result = run_map(Path(args.workspace), options, recorder, executor)
     print(json.dumps({"clusters": result.num_clusters, "models": result.models}, indent=2))
     return 0
 
@@ -165,7 +166,8 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
     options = options_from_args(ExtractOptions, args)
     _check_image_dir(args.images)
-    result = run_extract(Path(args.images), Path(args.workspace), options)
+    with _executor(args) as executor:
+        result = run_extract(Path(args.images), Path(args.workspace), options, _remote(executor))
     with _recorder(args, "extract") as recorder:
         from sfm.visualize import log_images
 
@@ -180,13 +182,19 @@ def cmd_match(args: argparse.Namespace) -> int:
     from sfm.matching import MatchOptions, run_match
 
     options = options_from_args(MatchOptions, args)
-    result = run_match(Path(args.workspace), options)
+    with _executor(args) as executor:
+        result = run_match(Path(args.workspace), options, _remote(executor))
     with _recorder(args, "match") as recorder:
         from sfm.visualize import log_verified_graph
 
         log_verified_graph(recorder, Path(args.workspace))
     print(json.dumps(asdict(result), indent=2))
     return 0
+
+
+def _remote(executor):
+    """The executor when it is distributed (extract and match then run on it), else None."""
+    return executor if hasattr(executor, "imap") else None
 
 
 def _check_image_dir(images: str) -> None:
@@ -211,8 +219,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from sfm.recording import Recorder
 
     recorder = Recorder.disabled() if args.no_recording else Recorder(workspace / "recording.rrd", workspace, spawn=args.spawn)
-    with recorder:
-        report = run_reconstruct(workspace, Path(args.images) if args.images else None, options, _executor(args), recorder)
+    with recorder, _executor(args) as executor:
+        report = run_reconstruct(workspace, Path(args.images) if args.images else None, options, executor, recorder)
     print(json.dumps({k: report.get(k) for k in ("images", "registered", "points", "mean_track_length",
                       "mean_reprojection_error", "num_clusters", "num_models", "times", "warnings") if k in report}, indent=2))
     return 0
@@ -301,12 +309,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", required=True, help="image folder (searched recursively)")
     p.add_argument("--workspace", required=True, help="output folder")
     add_options(p, ExtractOptions)
+    _add_executor_flags(p, workers=False)
     _add_recording_flags(p)
     p.set_defaults(func=cmd_extract)
 
     p = sub.add_parser("match", help="select pairs, match descriptors, verify two-view geometry")
     p.add_argument("--workspace", required=True, help="workspace with database.db")
     add_options(p, MatchOptions)
+    _add_executor_flags(p, workers=False)
     _add_recording_flags(p)
     p.set_defaults(func=cmd_match)
 

@@ -57,6 +57,15 @@ class LocalExecutor:
     def __init__(self, workers: int = 0) -> None:
         self.workers = workers if workers > 0 else (os.cpu_count() or 1)
 
+    def close(self) -> None:
+        """Nothing to close: each ``run`` opens and closes its own pool."""
+
+    def __enter__(self) -> LocalExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def run(self, payloads: Sequence[MapperInput], options: MapperOptions,
             recorder: Recorder | None = None) -> Iterator[ClusterResult]:
         """Yield one :class:`ClusterResult` per payload as they finish (any order)."""

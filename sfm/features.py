@@ -53,7 +53,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import multiprocessing
-import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -70,7 +69,15 @@ from tqdm import tqdm
 from sfm.database import Database
 from sfm.errors import InputError
 from sfm.extract_store import SIDECAR, ExtractWriter
-from sfm.images import BadImageError, ImageInfo, downscale, find_images, probe_image, read_gray
+from sfm.images import (
+    BadImageError,
+    ImageInfo,
+    downscale,
+    find_images,
+    probe_image,
+    read_gray,
+    workers_for_memory,
+)
 from sfm.intrinsics import (
     CAMERA_MODES,
     CameraSpec,
@@ -202,6 +209,7 @@ class _Job:
     name: str
     path: str
     options: ExtractOptions
+    data: bytes | None = None  # the file's bytes, for workers on other machines (no shared disk)
 
 
 @dataclass(frozen=True)
@@ -227,7 +235,7 @@ def _probe_job(job: _Job) -> tuple[str, ImageInfo | None, str]:
 
 def _extract_job(job: _Job) -> _Extracted:
     try:
-        data = Path(job.path).read_bytes()
+        data = job.data if job.data is not None else Path(job.path).read_bytes()
         gray, info = read_gray(data)
         keypoints, descriptors = extract_features(gray, job.options)
     except BadImageError as exc:
@@ -246,39 +254,28 @@ def _extract_job(job: _Job) -> _Extracted:
 Mapper = Callable[[Callable[[Any], Any], Iterable[Any]], Iterator[Any]]
 
 
-def _available_memory() -> int | None:
-    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def _auto_workers(options: ExtractOptions) -> int:
-    """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
-    Gaussian and DoG pyramids of the 2x-upsampled image, about 230 bytes per input pixel
-    (1.7 GB for a 3200 x 2400 image), plus the decoded full-size image."""
-    cores = (
-        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    )
-    available = _available_memory()
-    if available is None:
-        return cores
-    per_worker = 230 * 0.75 * options.max_image_size**2 + 300e6
-    fits = max(1, int(0.8 * available // per_worker))
-    if fits < cores:
-        logger.info("extract: %d workers instead of %d, to fit in %.1f GB of memory", fits, cores,
-                    available / 1e9)  # fmt: skip
-    return min(cores, fits)
+def _with_bytes(jobs: Iterable[_Job]) -> Iterator[_Job]:
+    """Jobs carrying their file's bytes (read lazily, one window at a time), for remote workers."""
+    for job in jobs:
+        try:
+            data = Path(job.path).read_bytes()
+        except OSError:
+            data = None  # the worker reports the error as it would for a local read
+        yield _Job(job.name, job.path, job.options, data)
 
 
 @contextmanager
-def _mapper(num_workers: int, num_jobs: int) -> Iterator[Mapper]:
-    """An ordered ``map`` over a spawn process pool, or the built-in map for one worker."""
+def _mapper(num_workers: int, num_jobs: int, executor=None) -> Iterator[Mapper]:
+    """An ordered ``map``: on a distributed ``executor`` (its ``imap``; headers are probed here,
+    images travel as bytes), over a spawn process pool, or the built-in map for one worker."""
+    if executor is not None and hasattr(executor, "imap"):
+        def remote(func, items):
+            if func is _probe_job:  # header reads: cheaper here than shipping every file
+                return map(func, items)
+            return executor.imap(func, _with_bytes(items))
+
+        yield remote
+        return
     workers = min(num_workers, num_jobs)
     if workers <= 1:
         yield lambda func, items: map(func, items)
@@ -339,9 +336,12 @@ def _extract_all(
 
 
 def run_extract(
-    image_dir: Path, workspace: Path, options: ExtractOptions = ExtractOptions()
+    image_dir: Path, workspace: Path, options: ExtractOptions = ExtractOptions(), executor=None
 ) -> ExtractResult:
     """Extract features of every image under ``image_dir`` into ``workspace/database.db``.
+
+    ``executor``: a distributed executor (:class:`sfm.dask_executor.DaskExecutor`) to run SIFT on
+    its workers; the database is written here, by this process only.
 
     Skips images that already have keypoints there; raises :class:`InputError` when no image is
     found or usable, when the intrinsics file is malformed or disagrees with an image's size, or
@@ -373,8 +373,8 @@ def run_extract(
             writer.warn_changed_options()
         jobs = [_Job(n, str(image_dir / n), options) for n in todo]
         if jobs:
-            workers = options.num_workers or _auto_workers(options)
-            with _mapper(workers, len(jobs)) as mapper:
+            workers = options.num_workers or workers_for_memory(options.max_image_size)
+            with _mapper(workers, len(jobs), executor) as mapper:
                 infos = _probe_all(jobs, mapper, bad)
                 specs = assign_cameras(infos, options.camera_mode, table)
                 writer.check_reused(specs)

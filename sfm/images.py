@@ -28,6 +28,7 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.features``):
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import warnings
@@ -40,6 +41,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
+
+logger = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
 
@@ -277,3 +280,33 @@ def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float,
     new_w, new_h = max(1, round(width / scale)), max(1, round(height / scale))
     small = cv2.resize(gray, (new_w, new_h), interpolation=cv2.INTER_AREA)
     return small, width / new_w, height / new_h
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def workers_for_memory(max_image_size: int) -> int:
+    """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
+    Gaussian and DoG pyramids of the 2x-upsampled image, about 230 bytes per input pixel
+    (1.7 GB for a 3200 x 2400 image), plus the decoded full-size image."""
+    cores = (
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    )
+    available = available_memory()
+    if available is None:
+        return cores
+    per_worker = 230 * 0.75 * max_image_size**2 + 300e6
+    fits = max(1, int(0.8 * available // per_worker))
+    if fits < cores:
+        logger.info("extract: %d workers instead of %d, to fit in %.1f GB of memory", fits, cores,
+                    available / 1e9)  # fmt: skip
+    return min(cores, fits)

@@ -29,6 +29,7 @@ import multiprocessing
 import os
 import time
 from collections import OrderedDict
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,7 @@ logger = logging.getLogger(__name__)
 
 BRUTE_MAX_PRODUCT = 2**27
 BATCH_PAIRS = 100
+BATCH_REMOTE = 64  # pairs per task on a distributed executor (one image's row, in exhaustive order)
 CACHE_BYTES = 256 * 2**20
 _V = VerifyOptions()
 
@@ -200,10 +202,11 @@ def match_descriptors(
 class _PairProcessor:
     """Matches and verifies pairs, reading features from a database through an LRU cache."""
 
-    def __init__(self, db: Database, camera_of: dict[int, int], cameras: dict[int, CameraRecord],
-                 options: MatchOptions) -> None:  # fmt: skip
-        """``camera_of``: image id -> camera id; ``cameras``: camera id -> record."""
-        self.db, self.camera_of, self.cameras, self.options = db, camera_of, cameras, options
+    def __init__(self, load: Callable[[int], tuple[np.ndarray, np.ndarray]], camera_of: dict[int, int],
+                 cameras: dict[int, CameraRecord], options: MatchOptions) -> None:  # fmt: skip
+        """``load``: image id -> (keypoints, uint8 descriptors); ``camera_of``: image id -> camera
+        id; ``cameras``: camera id -> record."""
+        self.load, self.camera_of, self.cameras, self.options = load, camera_of, cameras, options
         self.verify_options = options.verify_options()
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._cache_bytes = 0
@@ -213,10 +216,8 @@ class _PairProcessor:
         if image_id in self._cache:
             self._cache.move_to_end(image_id)
             return self._cache[image_id]
-        item = (
-            self.db.read_keypoints(image_id),
-            normalize_descriptors(self.db.read_descriptors(image_id)),
-        )
+        keypoints, descriptors = self.load(image_id)
+        item = (keypoints, normalize_descriptors(descriptors))
         self._cache[image_id] = item
         self._cache_bytes += item[0].nbytes + item[1].nbytes
         while self._cache_bytes > CACHE_BYTES and len(self._cache) > 2:
@@ -251,12 +252,43 @@ def _init_worker(db_path: str, camera_of, cameras, options: MatchOptions) -> Non
         threadpool_limits(1)
     except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
         pass
-    _WORKER = _PairProcessor(Database(db_path, readonly=True), camera_of, cameras, options)
+    _WORKER = _PairProcessor(_db_loader(Database(db_path, readonly=True)), camera_of, cameras, options)
 
 
 def _work(pair: tuple[int, int]):
     assert _WORKER is not None
     return _WORKER(pair)
+
+
+def _db_loader(db: Database) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+    return lambda image_id: (db.read_keypoints(image_id), db.read_descriptors(image_id))
+
+
+@dataclass
+class _Batch:
+    """Pairs for a remote worker, with the features and cameras they need (no database there)."""
+
+    pairs: list[tuple[int, int]]
+    features: dict[int, tuple[np.ndarray, np.ndarray]]
+    camera_of: dict[int, int]
+    cameras: dict[int, CameraRecord]
+    options: MatchOptions
+
+
+def _work_batch(batch: _Batch) -> list:
+    processor = _PairProcessor(batch.features.__getitem__, batch.camera_of, batch.cameras, batch.options)
+    return [processor(pair) for pair in batch.pairs]
+
+
+def _remote_batches(db: Database, todo: list[tuple[int, int]], camera_of, cameras, options: MatchOptions,
+                    size: int) -> Iterator[_Batch]:
+    """Consecutive pairs (exhaustive order keeps one image fixed) with their images' features."""
+    for start in range(0, len(todo), size):
+        pairs = todo[start:start + size]
+        ids = sorted({i for p in pairs for i in p})
+        features = {i: (db.read_keypoints(i), db.read_descriptors(i)) for i in ids}
+        cams = {camera_of[i] for i in ids}
+        yield _Batch(pairs, features, {i: camera_of[i] for i in ids}, {c: cameras[c] for c in cams}, options)
 
 
 # ------------------------------------------------------------------------------ the stage
@@ -276,8 +308,11 @@ def _usable_images(db: Database, ordered_ids: list[int], names: dict[int, str]) 
     return usable
 
 
-def run_match(workspace: Path, options: MatchOptions = MatchOptions()) -> MatchResult:
-    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring)."""
+def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None) -> MatchResult:
+    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring).
+
+    ``executor``: a distributed executor (:class:`sfm.dask_executor.DaskExecutor`); pairs then
+    travel in batches with their images' features, and only this process writes the database."""
     start = time.perf_counter()
     db_path = Path(workspace) / "database.db"
     if not db_path.is_file():
@@ -300,7 +335,7 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions()) -> MatchR
         logger.info("%d images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(usable), len(pairs), skipped, len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
-        times = _process(db, todo, camera_of, db.read_cameras(), options)
+        times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
@@ -310,9 +345,11 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions()) -> MatchR
     )  # fmt: skip
 
 
-def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, options: MatchOptions):
+def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, options: MatchOptions,
+             executor=None):
     """Run the pairs (in a pool when it pays), write results in batches; (t_match, t_verify)."""
     workers = options.num_workers or len(os.sched_getaffinity(0))
+    remote = executor is not None and hasattr(executor, "imap")
     t_match = t_verify = 0.0
     batch: list = []
 
@@ -325,7 +362,11 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
     pool = None
     failed_write = False
     try:
-        if workers > 1 and len(todo) >= 2 * workers:
+        if remote and todo:
+            size = max(1, min(BATCH_REMOTE, len(todo) // (4 * executor.num_workers())))
+            batches = executor.imap(_work_batch, _remote_batches(db, todo, camera_of, cameras, options, size))
+            results = (r for batch_results in batches for r in batch_results)
+        elif workers > 1 and len(todo) >= 2 * workers:
             # an executor, not multiprocessing.Pool: a worker that dies or fails to start raises
             # BrokenProcessPool here instead of being respawned forever
             pool = ProcessPoolExecutor(
@@ -335,7 +376,7 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
             chunk = max(1, min(16, len(todo) // (8 * workers)))
             results = pool.map(_work, todo, chunksize=chunk)
         else:
-            results = map(_PairProcessor(db, camera_of, cameras, options), todo)
+            results = map(_PairProcessor(_db_loader(db), camera_of, cameras, options), todo)
         for id1, id2, matches, geometry, tm, tv in tqdm(
             results, total=len(todo), desc="match", unit="pair"
         ):

@@ -115,10 +115,11 @@ def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOp
         from sfm.features import ExtractOptions, run_extract
         from sfm.matching import MatchOptions, run_match
 
+        remote = executor if hasattr(executor, "imap") else None  # Dask: features and matches too
         t0 = time.perf_counter()
-        run_extract(Path(images), workspace, options.extract or ExtractOptions())
+        run_extract(Path(images), workspace, options.extract or ExtractOptions(), remote)
         t1 = time.perf_counter()
-        run_match(workspace, options.match or MatchOptions())
+        run_match(workspace, options.match or MatchOptions(), remote)
         update_report(workspace, {"image_dir": str(images)}, {"T_feat": t1 - t0, "T_match": time.perf_counter() - t1})
     t0 = time.perf_counter()
     cluster_result = run_cluster(workspace, options.cluster or ClusterOptions(), recorder)

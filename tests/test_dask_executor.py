@@ -7,11 +7,11 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from sfm.dask_executor import DaskExecutor  # noqa: E402
-from sfm.executors import LocalExecutor  # noqa: E402
-from sfm.mapper_input import MapperOptions  # noqa: E402
-from sfm.mapping import load_payloads  # noqa: E402
-from sfm.synthetic import SynthOptions, run_synth  # noqa: E402
+from sfm.dask_executor import DaskExecutor
+from sfm.executors import LocalExecutor
+from sfm.mapper_input import MapperOptions
+from sfm.mapping import load_payloads
+from sfm.synthetic import SynthOptions, run_synth
 
 
 def test_dask_local_cluster_matches_local_executor(tmp_path):
@@ -19,9 +19,9 @@ def test_dask_local_cluster_matches_local_executor(tmp_path):
     names = sorted(f"aerial_{i:05d}.jpg" for i in range(24))
     payloads = load_payloads(tmp_path / "database.db", [names[:14], names[10:]], True, 15)
     local = {r.index: r for r in LocalExecutor(workers=1).run(payloads, MapperOptions())}
-    executor = DaskExecutor(workers=2)
-    remote = {r.index: r for r in executor.run(payloads, MapperOptions())}
-    assert executor.address and executor.address.startswith("tcp://")
+    with DaskExecutor(workers=2) as executor:
+        remote = {r.index: r for r in executor.run(payloads, MapperOptions())}
+        assert executor.address and executor.address.startswith("tcp://")
     for k in (0, 1):
         assert remote[k].error is None and remote[k].worker.startswith("tcp://")
         a, b = local[k].models[0], remote[k].models[0]
@@ -29,3 +29,31 @@ def test_dask_local_cluster_matches_local_executor(tmp_path):
         for i in a.images:
             np.testing.assert_array_equal(a.images[i].cam_from_world_rotation, b.images[i].cam_from_world_rotation)
         assert len(a.points3D) == len(b.points3D)
+
+
+def test_dask_extract_and_match_write_the_same_database(tmp_path):
+    """Features and verified pairs computed on Dask workers (image bytes and feature arrays travel,
+    not paths) equal the local ones."""
+    from sfm.database import Database
+    from sfm.features import ExtractOptions, run_extract
+    from sfm.matching import MatchOptions, run_match
+    from sfm.rendered import RenderOptions, write_rendered_scene
+
+    write_rendered_scene(tmp_path / "scene", RenderOptions(num_images=6, seed=1))
+    images = tmp_path / "scene" / "images"
+    run_extract(images, tmp_path / "local", ExtractOptions(num_workers=1))
+    run_match(tmp_path / "local", MatchOptions(num_workers=1))
+    with DaskExecutor(workers=2) as executor:
+        run_extract(images, tmp_path / "dask", ExtractOptions(), executor)
+        result = run_match(tmp_path / "dask", MatchOptions(), executor)
+    assert result.num_pairs_processed == 15 and result.num_verified >= 10
+    with Database(tmp_path / "local" / "database.db") as a, Database(tmp_path / "dask" / "database.db") as b:
+        assert {i.name for i in a.read_images().values()} == {i.name for i in b.read_images().values()}
+        for image_id in a.read_images():
+            np.testing.assert_array_equal(a.read_keypoints(image_id), b.read_keypoints(image_id))
+            np.testing.assert_array_equal(a.read_descriptors(image_id), b.read_descriptors(image_id))
+        ga, gb = a.read_two_view_geometries(), b.read_two_view_geometries()
+        assert sorted(ga) == sorted(gb)
+        for pair in ga:
+            assert ga[pair].config == gb[pair].config
+            np.testing.assert_array_equal(ga[pair].inlier_matches, gb[pair].inlier_matches)
