@@ -23,7 +23,8 @@ from graph.partition import cut_weight, labels_from_clusters, partition_graph
 from sfm.database import Database
 from sfm.errors import InputError
 from sfm.recording import Recorder
-from sfm.workspace import CLUSTERS, DATABASE, write_json_atomic
+from sfm.stages import Ledger, database_fingerprint, fingerprint, options_record
+from sfm.workspace import CLUSTERS, DATABASE, read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,15 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
     ej = np.array([node_of[int(j)] for j in id2])
     graph = build_image_graph(len(image_ids), ei, ej, weights.astype(np.float64))
 
+    out = Path(workspace) / CLUSTERS
+    ledger = Ledger(workspace)
+    opts, input_fp = options_record(options), database_fingerprint(db_path)
+    if ledger.is_current("cluster", opts, input_fp) and out.exists():
+        return _reuse(out, names, (ei, ej, weights), recorder, t0)
+    if ledger.record("cluster"):
+        log.info("cluster: runs again: %s", ledger.why_stale("cluster", opts, input_fp))
+    ledger.start("cluster", opts, input_fp)
+
     # Isolated images (no verified pair) are not clustered: nothing can register them.
     components = connected_components(graph)
     isolated = sorted(int(c[0]) for c in components if len(c) == 1)
@@ -121,29 +131,44 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
         "cut_weight_fraction": round(cut_fraction, 6),
         "options": asdict(options),
     }
-    out = Path(workspace) / CLUSTERS
     write_json_atomic(out, clusters_json)
+    ledger.finish("cluster", fingerprint([c["members"] for c in clusters_json["clusters"]]))
 
-    recorder.stage("cluster")
-    recorder.log_image_graph(names, ei, ej, weights, cluster_of=labels)
-    recorder.log_cluster_graph([len(c) for c in expansion.clusters], [(a, b) for a, b, _ in expansion.maxst_edges])
-    elapsed = time.perf_counter() - t0
-    sizes = [len(c) for c in expansion.clusters]
     if isolated:
         log.warning("%d image(s) have no verified pair and are left out: %s", len(isolated),
                     ", ".join(names[i] for i in isolated[:5]) + (" ..." if len(isolated) > 5 else ""))
-    result = ClusterResult(
-        num_images=len(image_ids),
-        num_clusters=len(sizes),
-        num_isolated=len(isolated),
+    result = _log_and_summarise(clusters_json, out, names, (ei, ej, weights), recorder, t0)
+    log.info("cluster: %d images -> %d clusters (sizes %d-%d), %.1f%% of the edge weight cut, %.2f s",
+             result.num_images, result.num_clusters, min(result.cluster_sizes), max(result.cluster_sizes),
+             100 * cut_fraction, result.time_s)
+    return result
+
+
+def _reuse(out: Path, names: list[str], graph_arrays, recorder: Recorder, t0: float) -> ClusterResult:
+    """A current ``clusters.json``: logged to the recording and summarised, not recomputed."""
+    result = _log_and_summarise(read_json(out), out, names, graph_arrays, recorder, t0)
+    log.info("cluster: %s is current (same options, same database): skipped, %d clusters", out, result.num_clusters)
+    return result
+
+
+def _log_and_summarise(clusters_json: dict, out: Path, names: list[str], graph_arrays, recorder: Recorder,
+                       t0: float) -> ClusterResult:
+    ei, ej, weights = graph_arrays
+    clusters = clusters_json["clusters"]
+    node = {n: k for k, n in enumerate(names)}
+    labels = labels_from_clusters([[node[n] for n in c["core"]] for c in clusters], len(names))
+    recorder.stage("cluster")
+    recorder.log_image_graph(names, ei, ej, weights, cluster_of=labels)
+    recorder.log_cluster_graph([len(c["members"]) for c in clusters], [(a, b) for a, b, _ in clusters_json["maxst"]])
+    return ClusterResult(
+        num_images=clusters_json["num_images"],
+        num_clusters=len(clusters),
+        num_isolated=len(clusters_json["isolated_images"]),
         num_components=clusters_json["num_components"],
-        cluster_sizes=sizes,
-        core_sizes=[len(c) for c in expansion.cores],
-        min_completeness=float(min((s.completeness for s in expansion.stats), default=0.0)),
-        cut_fraction=round(cut_fraction, 6),
-        time_s=round(elapsed, 3),
+        cluster_sizes=[c["size"] for c in clusters],
+        core_sizes=[c["core_size"] for c in clusters],
+        min_completeness=float(min((c["completeness"] for c in clusters), default=0.0)),
+        cut_fraction=clusters_json["cut_weight_fraction"],
+        time_s=round(time.perf_counter() - t0, 3),
         path=str(out),
     )
-    log.info("cluster: %d images -> %d clusters (sizes %d-%d), %.1f%% of the edge weight cut, %.2f s",
-             result.num_images, result.num_clusters, min(sizes), max(sizes), 100 * cut_fraction, elapsed)
-    return result

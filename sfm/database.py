@@ -357,6 +357,12 @@ class Database:
         id2 = arr[:, 0] % MAX_IMAGE_ID
         return (arr[:, 0] - id2) // MAX_IMAGE_ID, id2, arr[:, 1].copy()
 
+    def clear_matches(self) -> None:
+        """Delete every raw match and two-view geometry (stale after the match options changed)."""
+        with self.transaction():
+            self._conn.execute("DELETE FROM matches")
+            self._conn.execute("DELETE FROM two_view_geometries")
+
     # ------------------------------------------------------------------ resuming, counts
     def images_with_keypoints(self) -> set[int]:
         return {int(r[0]) for r in self._conn.execute("SELECT image_id FROM keypoints")}

@@ -6,7 +6,7 @@ keypoints, descriptors) in one transaction, so an interrupted run loses only the
 flight, and a resumed run skips the images that already have keypoints in ``WORK/database.db``.
 ``WORK/extract.json`` (written atomically) maps each shared camera's group key to its camera id
 and records the options, so a resumed run puts new images on the cameras it made before (and
-warns when the feature options changed); COLMAP's tables hold nothing extra.
+the options live in the stage ledger, ``WORK/stages.json``); COLMAP's tables hold nothing extra.
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ import numpy as np
 from sfm.database import Database
 from sfm.errors import InputError
 from sfm.intrinsics import CameraSpec
-from sfm.workspace import read_json, write_json_atomic
+from sfm.stages import Ledger, fingerprint, options_record, resume_or_restart
+from sfm.workspace import DATABASE, read_json, write_json_atomic
 
 if TYPE_CHECKING:
     from sfm.features import ExtractOptions
@@ -30,14 +31,28 @@ if TYPE_CHECKING:
 logger = logging.getLogger("sfm.features")
 
 SIDECAR = "extract.json"
-_FEATURE_OPTIONS = ("max_image_size", "max_num_features", "root_sift", "contrast_threshold",
-                    "edge_threshold")  # fmt: skip
 
 
 def _options_json(options: ExtractOptions) -> dict[str, Any]:
     d = dataclasses.asdict(options)
     d["intrinsics"] = None if options.intrinsics is None else str(options.intrinsics)
     return d
+
+
+def extract_ledger(workspace: Path, options: ExtractOptions) -> Ledger:
+    """The stage ledger, after dropping the database when the options that decide the features
+    or the cameras changed since the images in it were extracted (the intrinsics file counts by
+    its content): every image is then extracted again, and every later stage runs again."""
+    record = options_record(options)
+    if options.intrinsics is not None and Path(options.intrinsics).is_file():
+        record["intrinsics"] = fingerprint(Path(options.intrinsics).read_bytes())
+
+    def reset() -> None:
+        for name in (DATABASE, DATABASE + "-wal", DATABASE + "-shm", SIDECAR):
+            (workspace / name).unlink(missing_ok=True)
+
+    return resume_or_restart(workspace, "extract", record, reset,
+                             "the database is deleted and every image is extracted again")
 
 
 class ExtractWriter:
@@ -77,18 +92,6 @@ class ExtractWriter:
     def names_with_keypoints(self) -> set[str]:
         with_kp = self.db.images_with_keypoints()
         return {n for n, i in self.image_ids.items() if i in with_kp}
-
-    def warn_changed_options(self) -> None:
-        if not isinstance(self.saved_options, dict):
-            return
-        now = _options_json(self.options)
-        changed = [f"{k}={self.saved_options[k]!r} (now {now[k]!r})" for k in _FEATURE_OPTIONS
-                   if k in self.saved_options and self.saved_options[k] != now[k]]  # fmt: skip
-        if changed:
-            logger.warning(
-                "images already in %s keep features extracted with %s; delete the database to "
-                "extract them again", self.db.path, ", ".join(changed),
-            )  # fmt: skip
 
     def check_reused(self, specs: dict[str, CameraSpec]) -> None:
         """A camera reused from an earlier run must have the size of its new images."""

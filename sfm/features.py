@@ -68,7 +68,7 @@ from tqdm import tqdm
 
 from sfm.database import Database
 from sfm.errors import InputError
-from sfm.extract_store import SIDECAR, ExtractWriter
+from sfm.extract_store import SIDECAR, ExtractWriter, extract_ledger
 from sfm.images import (
     BadImageError,
     ImageInfo,
@@ -362,6 +362,7 @@ def run_extract(
     workspace.mkdir(parents=True, exist_ok=True)
     bad: list[tuple[str, str]] = []
     extracted = 0
+    ledger = extract_ledger(workspace, options)
     with Database(workspace / DATABASE) as db:
         writer = ExtractWriter(db, workspace / SIDECAR, image_dir, options)
         done = writer.names_with_keypoints()
@@ -370,7 +371,6 @@ def run_extract(
         if skipped:
             logger.info("%d of %d images already have features in %s: skipped", skipped,
                         len(names), db.path)  # fmt: skip
-            writer.warn_changed_options()
         jobs = [_Job(n, str(image_dir / n), options) for n in todo]
         if jobs:
             workers = options.num_workers or workers_for_memory(options.max_image_size)
@@ -388,6 +388,7 @@ def run_extract(
         num_with_keypoints = len(db.images_with_keypoints())
         mean_keypoints = db.num_keypoints() / max(num_with_keypoints, 1)
         num_cameras = db.num_cameras()
+    ledger.finish("extract", "")
     result = ExtractResult(len(names), extracted, skipped, bad, num_cameras, mean_keypoints,
                            time.perf_counter() - t0)  # fmt: skip
     logger.info(

@@ -17,13 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm.colmap_io import write_model
+from sfm.colmap_io import read_model, write_model
 from sfm.database import Database
 from sfm.errors import InputError, NoModelError
 from sfm.executors import LocalExecutor
 from sfm.mapper_input import CameraPrior, MapperInput, MapperOptions
 from sfm.model import Reconstruction
 from sfm.recording import Recorder, log_model
+from sfm.stages import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.workspace import CLUSTERS, DATABASE, read_json, update_report
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,10 @@ class MapResult:
 
 
 def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None = None, executor=None) -> MapResult:
-    """Incremental SfM of every cluster (or of all images) in ``workspace``."""
+    """Incremental SfM of every cluster (or of all images) in ``workspace``.
+
+    Clusters that an earlier run with the same options and input finished (``WORK/stages.json``)
+    are reused, not recomputed, so a run killed during ``map`` loses only the clusters in flight."""
     recorder = recorder or Recorder.disabled()
     executor = executor or LocalExecutor()
     workspace = Path(workspace)
@@ -97,14 +101,37 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     direct = clusters is None or len(clusters) == 1
     payloads = load_payloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics,
                              min_inliers=options.min_num_matches)
+    ledger = Ledger(workspace)
+    opts, input_fp = options_record(options), fingerprint(database_fingerprint(db_path), clusters)
+    done = _finished_clusters(ledger, opts, input_fp, workspace, direct)
+    if done is None:
+        if ledger.record("map"):
+            log.info("map: runs again: %s", ledger.why_stale("map", opts, input_fp))
+        for stale in (workspace / "clusters", workspace / "sparse"):  # never mixed with new results
+            shutil.rmtree(stale, ignore_errors=True)
+        ledger.start("map", opts, input_fp, keep={"clusters": {}})
+        done = {}
     recorder.stage("map")
     per_cluster: list[dict] = [{} for _ in payloads]
-    for res in executor.run(payloads, options, recorder):
-        label = payloads[res.index].label
-        folder = workspace / "sparse" if direct else workspace / "clusters" / label
-        written = write_models(res.models, folder)
-        per_cluster[res.index] = {"cluster": label, "images": len(payloads[res.index].names), "worker": res.worker,
-                                  "models": written, "error": res.error}
+    for k, p in enumerate(payloads):
+        if p.label in done:
+            per_cluster[k] = {**done[p.label], "reused": True}
+            for m in range(len(done[p.label]["models"])) if recorder.enabled else ():
+                model = read_model(_folder(workspace, direct, p.label) / str(m))
+                log_model(recorder, f"clusters/{p.label}" + (f"/{m}" if m else ""), model)
+    todo = [k for k, p in enumerate(payloads) if p.label not in done]
+    if done:
+        log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
+                 len(done), len(payloads), ", ".join(sorted(done)))
+    for res in executor.run([payloads[k] for k in todo], options, recorder) if todo else ():
+        k = todo[res.index]
+        label = payloads[k].label
+        written = write_models(res.models, _folder(workspace, direct, label))
+        per_cluster[k] = {"cluster": label, "images": len(payloads[k].names), "worker": res.worker,
+                          "models": written, "error": res.error}
+        if res.error is None:  # a failed cluster is tried again by the next run
+            ledger.data["map"]["clusters"][label] = per_cluster[k]
+            ledger.save()
         for m, model in enumerate(res.models):
             log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
     flat = [m for c in per_cluster for m in c["models"]]
@@ -124,7 +151,26 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     if failed:
         fields["failed_clusters"] = failed
     update_report(workspace, fields, {"T_SfM": elapsed})
+    ledger.finish("map", fingerprint(input_fp, opts, failed))
     if not flat:
         raise NoModelError("no model could be made: no image pair could be reconstructed (too few inliers or too small baselines)")
     log.info("map: %d clusters, %d local models, %.1f s", len(payloads), len(flat), elapsed)
     return MapResult(num_images, len(payloads), flat, per_cluster, round(elapsed, 3), direct)
+
+
+def _folder(workspace: Path, direct: bool, label: str) -> Path:
+    return workspace / "sparse" if direct else workspace / "clusters" / label
+
+
+def _finished_clusters(ledger: Ledger, opts: dict, input_fp: str, workspace: Path, direct: bool) -> dict | None:
+    """The clusters an earlier ``map`` with these options and this input finished, whose models
+    are still on disk (``None``: no such run, start afresh)."""
+    rec = ledger.record("map")
+    if not rec or rec.get("options") != opts or rec.get("input") != input_fp:
+        return None
+    out = {}
+    for label, entry in (rec.get("clusters") or {}).items():
+        folder = _folder(workspace, direct, label)
+        if all((folder / str(m) / "images.bin").exists() for m in range(len(entry.get("models", [])))):
+            out[label] = entry
+    return out

@@ -42,6 +42,7 @@ from sfm.database import Database
 from sfm.database_schema import CameraRecord, TwoViewGeometry
 from sfm.errors import InputError
 from sfm.pairs import select_pairs
+from sfm.stages import options_record, resume_or_restart
 from sfm.verification import VerifyOptions, pair_seed, to_colmap_pixels, verify_pair
 
 logger = logging.getLogger(__name__)
@@ -326,6 +327,8 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         usable = _usable_images(db, ordered, names)
         if not usable:
             raise InputError(f"no image in {db_path} has keypoints and descriptors")
+        ledger = resume_or_restart(workspace, "match", options_record(options), db.clear_matches,
+                                   "the stored matches are deleted and every pair is matched again")
         pairs = select_pairs(usable, options.pairs, top_k=options.top_k, sequential=options.sequential,
                              exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
                              load_descriptors=db.read_descriptors)  # fmt: skip
@@ -337,6 +340,7 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         camera_of = {i: r.camera_id for i, r in images.items()}
         times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
+    ledger.finish("match", "")
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
         num_pairs_processed=len(todo), num_verified=len(inliers),

@@ -10,16 +10,24 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from sfm.errors import NoModelError
 from sfm.incremental import refine_with_poses
 from sfm.mapper_input import MapperOptions
 from sfm.mapping import load_payloads, write_models
-from sfm.merge import (MergeOptions, anchor_from_model, build_cluster_graph, load_local_models, merge_json,
-                       merged_poses, plan_components)
+from sfm.merge import (
+    MergeOptions,
+    anchor_from_model,
+    build_cluster_graph,
+    load_local_models,
+    merge_json,
+    merged_poses,
+    plan_components,
+)
 from sfm.recording import Recorder, log_model
+from sfm.stages import Ledger, fingerprint, options_record
 from sfm.workspace import DATABASE, MERGE, update_report, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -42,6 +50,15 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     recorder = recorder or Recorder.disabled()
     workspace = Path(workspace)
     t0 = time.perf_counter()
+    ledger = Ledger(workspace)
+    opts = {"mapper": options_record(mapper_options), "merge": options_record(options)}
+    input_fp = _local_models_fingerprint(workspace)
+    if ledger.is_current("merge", opts, input_fp) and (workspace / "sparse" / "0" / "images.bin").exists():
+        log.info("merge: %s is current (same options, same local models): skipped", workspace / "sparse")
+        return MergeResult(**ledger.record("merge")["result"])
+    if ledger.record("merge"):
+        log.info("merge: runs again: %s", ledger.why_stale("merge", opts, input_fp))
+    ledger.start("merge", opts, input_fp)
     models = load_local_models(workspace)
     if not models:
         raise NoModelError("no local model to merge: every cluster failed to reconstruct")
@@ -87,7 +104,16 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         raise NoModelError("merging left no model")
     log.info("merge: %d local models -> %d models (largest %d images), merge %.1f s, final BA %.1f s",
              len(models), len(finals), len(finals[0].images), t_merge, t_ba)
-    return MergeResult(len(models), len(edges), len(finals), written, round(t_merge, 3), round(t_ba, 3))
+    result = MergeResult(len(models), len(edges), len(finals), written, round(t_merge, 3), round(t_ba, 3))
+    ledger.finish("merge", fingerprint([m["path"] for m in written]), result=asdict(result))
+    return result
+
+
+def _local_models_fingerprint(workspace: Path) -> str:
+    """SHA-256 of every file of ``WORK/clusters/C<k>/<m>/``: what ``merge`` reads."""
+    root = workspace / "clusters"
+    files = sorted(p for p in root.glob("C*/*/*") if p.is_file()) if root.is_dir() else []
+    return fingerprint(*[x for p in files for x in (str(p.relative_to(root)), p.read_bytes())])
 
 
 @dataclass(frozen=True)

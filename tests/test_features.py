@@ -152,18 +152,23 @@ def test_resume_and_new_images(tmp_path, caplog):
     assert (again.num_extracted, again.num_skipped_existing, again.num_cameras) == (0, 3, 1)
 
     write(d / "later.png", textured(240, 320, 9))
-    with caplog.at_level(logging.WARNING):
-        third = run_extract(d, tmp_path / "ws", ExtractOptions(num_workers=1, max_num_features=800))
+    third = run_extract(d, tmp_path / "ws", ExtractOptions(**FAST))
     assert (third.num_extracted, third.num_skipped_existing, third.num_cameras) == (1, 3, 1)
-    assert any("max_num_features=1000" in r.getMessage() for r in caplog.records)
     _, images, kps, _ = read_db(tmp_path / "ws")
     assert {n: r.image_id for n, r in images.items() if n in images_before} == {
         n: r.image_id for n, r in images_before.items()
     }
     assert images["later.png"].camera_id == images["im0.png"].camera_id
-    assert len(kps["later.png"]) <= 800
     np.testing.assert_array_equal(kps["im1.png"], kps_before["im1.png"])
     assert not (tmp_path / "ws" / "database.db-wal").exists()
+
+    # A feature option changed: the stored features are stale, every image is extracted again.
+    with caplog.at_level(logging.WARNING):
+        fourth = run_extract(d, tmp_path / "ws", ExtractOptions(**{**FAST, "max_num_features": 200}))
+    assert (fourth.num_extracted, fourth.num_skipped_existing, fourth.num_cameras) == (4, 0, 1)
+    assert any("max_num_features: 1000 -> 200" in r.getMessage() for r in caplog.records)
+    _, _, kps, _ = read_db(tmp_path / "ws")
+    assert max(len(k) for k in kps.values()) == 200
 
 
 def test_resume_keeps_rows_and_checks_shared_camera_sizes(tmp_path):
@@ -184,8 +189,9 @@ def test_resume_keeps_rows_and_checks_shared_camera_sizes(tmp_path):
     with pytest.raises(InputError, match=r"c.png is 240x320 but camera \d+, made for its group"):
         run_extract(d, tmp_path / "ws", ExtractOptions(camera_mode="single", **FAST))
     assert not (tmp_path / "ws" / "database.db-wal").exists()
-    result = run_extract(d, tmp_path / "ws", ExtractOptions(**FAST))  # auto: its own camera
-    assert (result.num_extracted, result.num_cameras) == (1, 3)
+    # camera_mode changed: the cameras of the stored images are stale, all are extracted again
+    result = run_extract(d, tmp_path / "ws", ExtractOptions(**FAST))  # auto: one camera per size
+    assert (result.num_extracted, result.num_skipped_existing, result.num_cameras) == (3, 0, 2)
 
 
 def test_interrupted_run_keeps_finished_images(tmp_path, monkeypatch):

@@ -30,6 +30,7 @@ from sfm.synthetic import SynthOptions, run_synth
 def time_map(workspace: Path, executor) -> dict:
     """One ``map`` of every cluster; seconds, registered images summed over clusters, workers used."""
     shutil.rmtree(workspace / "clusters", ignore_errors=True)
+    (workspace / "stages.json").unlink(missing_ok=True)  # else map would reuse the clusters just mapped
     t0 = time.perf_counter()
     with executor:
         result = run_map(workspace, MapperOptions(), executor=executor)
