@@ -21,7 +21,7 @@ from graph.expansion import expand_clusters
 from graph.image_graph import build_image_graph, connected_components
 from graph.partition import cut_weight, labels_from_clusters, partition_graph
 from sfm.database import Database
-from sfm.errors import InputError
+from sfm.errors import InputError, NoModelError
 from sfm.recording import Recorder
 from sfm.stages import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.workspace import CLUSTERS, DATABASE, read_json, write_json_atomic
@@ -81,7 +81,8 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
         images = db.read_images()
         id1, id2, weights = db.verified_pairs(min_inliers=options.min_inliers)
     if len(id1) == 0:
-        raise InputError(f"{db_path} holds no verified pair (>= {options.min_inliers} inliers): nothing to cluster")
+        raise NoModelError(f"no two of the {len(images)} images overlap: no pair has >= {options.min_inliers} verified "
+                           "inlier matches, so no model can be made")
     image_ids = np.array(sorted(images), dtype=np.int64)
     names = [images[i].name for i in image_ids]
     node_of = {int(i): k for k, i in enumerate(image_ids)}

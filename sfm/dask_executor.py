@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import uuid
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
@@ -132,8 +133,10 @@ class DaskExecutor:
         client = self.client()
         run_id = uuid.uuid4().hex[:8]
         order = sorted(range(len(payloads)), key=lambda k: -len(payloads[k].names))
-        futures = {client.submit(_task, payloads[k], options, key=f"sfm-{payloads[k].label}-{run_id}",
-                                 retries=1, pure=False): k for k in order}
+        with warnings.catch_warnings():  # a payload is its cluster's data: it has to travel with the task
+            warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
+            futures = {client.submit(_task, payloads[k], options, key=f"sfm-{payloads[k].label}-{run_id}",
+                                     retries=1, pure=False): k for k in order}
         bar = tqdm(total=len(payloads), desc="local SfM (dask)", unit="cluster", disable=None)
         try:
             for future in as_completed(futures):

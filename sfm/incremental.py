@@ -156,6 +156,8 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
     state = MapperState(payload, opts)
     models: list[Reconstruction] = []
     tried: set = set()
+    # COLMAP's rule: a small input keeps smaller models (a two-image input gives a two-view model).
+    min_size = max(2, min(opts.min_model_size, int(0.8 * len(payload.names))))
     while len(models) < opts.max_num_models:
         if not _try_initial_pair(state, tried):
             break
@@ -176,7 +178,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
         model = state.to_reconstruction()
         n = state.num_registered
         state.close_model()
-        if n >= opts.min_model_size:
+        if n >= min_size:
             models.append(model)
             log.info("%s: model %d with %d images, %d points", payload.label, len(models) - 1, n, len(model.points3D))
         if int(np.sum(~state.used)) < 2:

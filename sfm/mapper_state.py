@@ -41,7 +41,8 @@ class MapperState:
         self.names = payload.names
         n = len(payload.names)
         self.cam_keys = sorted(payload.cameras)
-        self.cam_index = np.array([self.cam_keys.index(c) for c in payload.camera_ids], dtype=np.int64)
+        key_index = {c: k for k, c in enumerate(self.cam_keys)}
+        self.cam_index = np.array([key_index[c] for c in payload.camera_ids], dtype=np.int64)
         self.priors = [payload.cameras[c] for c in self.cam_keys]
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self.pair_matches = {
@@ -53,13 +54,13 @@ class MapperState:
         self.starts = tracks.starts
         self.obs_image, self.obs_kp = tracks.image, tracks.keypoint
         self.obs_track = tracks.track_of_observation()
-        self.obs_px = np.zeros((len(self.obs_image), 2))
-        for i in range(n):
-            rows = np.flatnonzero(self.obs_image == i)
-            self.obs_px[rows] = np.asarray(payload.keypoints[i], dtype=np.float64)[self.obs_kp[rows], :2]
         order = np.argsort(self.obs_image, kind="stable")
         bounds = np.searchsorted(self.obs_image[order], np.arange(n + 1))
         self.image_rows = [order[bounds[i] : bounds[i + 1]] for i in range(n)]
+        self.obs_px = np.zeros((len(self.obs_image), 2))
+        for i, rows in enumerate(self.image_rows):
+            if len(rows):
+                self.obs_px[rows] = np.asarray(payload.keypoints[i], dtype=np.float64)[self.obs_kp[rows], :2]
         self.obs_norm = np.zeros_like(self.obs_px)
         self._update_normalised()
         self.num_tracks = tracks.num_tracks

@@ -139,17 +139,20 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     num_images = len({n for p in payloads for n in p.names})  # clusters overlap
     fields = {"images": num_images, "executor": executor.name, "scheduler": getattr(executor, "address", None),
               "clusters": per_cluster, "num_clusters": len(payloads),
-              "mapper_options": asdict(options)}
+              "mapper_options": asdict(options), "warnings": []}  # no stale warning of an earlier run
     if direct:
         flat.sort(key=lambda m: -m["registered"])
         fields["num_models"] = len(flat)
         if flat:
             fields.update({k: flat[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
-            if len(flat) > 1:
-                fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction"]
-    failed = [c["cluster"] for c in per_cluster if c["error"]]
+        if len(flat) > 1:
+            sizes = ", ".join(str(m["registered"]) for m in flat)
+            fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction (sizes {sizes})"]
+    failed = fields["failed_clusters"] = [c["cluster"] for c in per_cluster if c["error"]]
     if failed:
-        fields["failed_clusters"] = failed
+        fields["warnings"].append(f"{len(failed)} cluster(s) failed and are left out: {', '.join(failed)}")
+    for warning in fields["warnings"]:
+        log.warning("%s", warning)
     update_report(workspace, fields, {"T_SfM": elapsed})
     ledger.finish("map", fingerprint(input_fp, opts, failed))
     if not flat:

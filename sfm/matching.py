@@ -325,8 +325,8 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         names = {i: r.name for i, r in images.items()}
         ordered = sorted(images, key=lambda i: names[i])
         usable = _usable_images(db, ordered, names)
-        if not usable:
-            raise InputError(f"no image in {db_path} has keypoints and descriptors")
+        if len(usable) < 2:  # one image: nothing to match, no model to make
+            raise InputError(f"{len(usable)} image(s) in {db_path} with keypoints and descriptors: SfM needs at least 2")
         ledger = resume_or_restart(workspace, "match", options_record(options), db.clear_matches,
                                    "the stored matches are deleted and every pair is matched again")
         pairs = select_pairs(usable, options.pairs, top_k=options.top_k, sequential=options.sequential,

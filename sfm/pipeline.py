@@ -28,7 +28,7 @@ from sfm.merge import (
 )
 from sfm.recording import Recorder, log_model
 from sfm.stages import Ledger, fingerprint, options_record
-from sfm.workspace import DATABASE, MERGE, update_report, write_json_atomic
+from sfm.workspace import DATABASE, MERGE, REPORT, read_json, update_report, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
                              min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
     for (plan, poses, params), payload in zip(components, payloads):
         final = refine_with_poses(payload, mapper_options, poses, params)
-        if len(final.images) >= mapper_options.min_model_size:
+        if len(final.images) >= max(2, min(mapper_options.min_model_size, int(0.8 * len(payload.names)))):
             finals.append(final)
     finals.sort(key=lambda m: -len(m.images))
     written = write_models(finals, workspace / "sparse")
@@ -97,8 +97,13 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     fields = {"num_models": len(finals), "num_local_models": len(models), "merge_components": len(plans), "models": written}
     if written:
         fields.update({k: written[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
+    fields["warnings"] = [w for w in read_json(workspace / REPORT).get("warnings", []) if "cluster(s) failed" in w] \
+        if (workspace / REPORT).exists() else []  # map's failed clusters still hold; nothing else from before
     if len(finals) > 1:
-        fields["warnings"] = [f"{len(finals)} models: the scene splits into {len(finals)} parts that share no aligned cluster pair"]
+        msg = (f"{len(finals)} models: the scene splits into {len(finals)} parts that share no aligned cluster pair "
+               f"(sizes {', '.join(str(len(f.images)) for f in finals)})")
+        log.warning("%s", msg)
+        fields["warnings"].append(msg)
     update_report(workspace, fields, {"T_merge": t_merge, "T_BA": t_ba})
     if not finals:
         raise NoModelError("merging left no model")
@@ -133,7 +138,6 @@ def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOp
     given; clustering is skipped (one cluster) when all images fit in one cluster."""
     from sfm.clustering import ClusterOptions, run_cluster
     from sfm.mapping import run_map
-    from sfm.workspace import REPORT, read_json
 
     workspace = Path(workspace)
     recorder = recorder or Recorder.disabled()

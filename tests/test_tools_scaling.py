@@ -1,0 +1,51 @@
+"""tools/bench_scaling.py: the exponent fit, the process-tree memory sampler and the table."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from bench_scaling import fit_exponent, report, run_child, tree_rss
+
+
+def test_fit_exponent_recovers_a_power_law_from_500_images_up():
+    rows = [{"images": n, "time_s": 0.02 * n**1.37} for n in (250, 500, 1000, 2000, 4000)]
+    rows[0]["time_s"] *= 10  # below 500 images: not part of the fit
+    assert abs(fit_exponent(rows) - 1.37) < 1e-9
+    assert fit_exponent(rows[:2]) is None  # one size from 500 up: no fit
+
+
+def test_tree_rss_counts_children():
+    child = subprocess.Popen([sys.executable, "-c", "import time; b = b\"\\x01\" * (300 * 2**20); time.sleep(5)"])
+    try:
+        time.sleep(1.5)
+        import os
+
+        assert tree_rss(os.getpid()) >= tree_rss(child.pid) > 300 * 2**20
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_run_child_reports_the_peak_of_the_tree():
+    code = "import time; b = b\"\\x01\" * (200 * 2**20); time.sleep(1.0)"
+    rc, seconds, peak = run_child([sys.executable, "-c", code])
+    assert rc == 0 and seconds >= 1.0 and 200 * 2**20 < peak < 400 * 2**20
+
+
+def test_report_table_ratio_and_skipped_peers(tmp_path):
+    results = {
+        (500, "graphsfm-2"): {"images": 500, "method": "graphsfm-2", "time_s": 50.0, "registered": 500},
+        (500, "colmap-incremental"): {"images": 500, "method": "colmap-incremental", "time_s": 200.0},
+        (1000, "graphsfm-2"): {"images": 1000, "method": "graphsfm-2", "time_s": 100.0, "registered": 1000},
+    }
+    text = report(tmp_path, [500, 1000], results)
+    assert "| 500 | graphsfm-2 | 50.0 |" in text and text.count("| 0.25 |") == 1
+    assert "| 1000 | colmap-incremental | skipped |" in text
+    assert "- graphsfm-2: 1.00" in text and "- colmap-global: too few sizes" in text
+    assert np.isfinite(fit_exponent([r for (n, m), r in results.items() if m == "graphsfm-2"]))

@@ -1,0 +1,227 @@
+"""Time against number of images: graphsfm (1 and 2 workers) and pycolmap's incremental and
+global mappers on the same synthetic aerial databases (the paper's efficiency table, Table 2).
+
+    python tools/bench_scaling.py --out DIR [--sizes 250 500 1000 2000 4000] [--skip-peers-above N]
+
+For each size, ``graphsfm synth --scene aerial --outlier-ratio 0.2 --seed 0`` makes
+``DIR/data/<n>/database.db`` once; every method then maps a copy of that same database in its
+own child process, from database to final model (graphsfm: cluster, map, merge and final BA
+with default options).  Each run's result is cached in ``DIR/runs/<n>/<method>.json``, so an
+interrupted benchmark resumes where it stopped (``--force`` reruns).  Peak memory is the
+largest summed RSS of the run's process tree, sampled every 0.2 s.  Writes ``DIR/scaling.md``
+(the table, the time ratio to COLMAP's incremental mapper, and the exponent b of a least-squares
+fit t = a n^b over 500..4000 images) and ``DIR/scaling.png`` (log-log).  Peers are skipped above
+``--skip-peers-above`` images (the table says so).  Run it on an otherwise idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+METHODS = ("graphsfm-1", "graphsfm-2", "colmap-incremental", "colmap-global")
+PEERS = ("colmap-incremental", "colmap-global")
+
+
+def tree_rss(pid: int) -> int:
+    """Summed resident memory (bytes) of ``pid`` and all its descendants, from /proc."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+                children.setdefault(ppid, []).append(int(entry))
+            except (OSError, ValueError, IndexError):
+                continue
+    total, todo = 0, [pid]
+    while todo:
+        p = todo.pop()
+        todo.extend(children.get(p, []))
+        try:
+            with open(f"/proc/{p}/statm") as f:
+                total += int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
+
+
+def run_child(argv: list[str]) -> tuple[int, float, int]:
+    """(return code, seconds, peak tree RSS in bytes) of a child process."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(argv)
+    peak = [0]
+
+    def sample() -> None:
+        while proc.poll() is None:
+            peak[0] = max(peak[0], tree_rss(proc.pid))
+            time.sleep(0.2)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    code = proc.wait()
+    sampler.join()
+    return code, time.perf_counter() - t0, peak[0]
+
+
+def one_run(out: Path, n: int, method: str) -> None:
+    """The child: map DIR/data/<n>/database.db with ``method``; write its model and metrics."""
+    import logging
+    import zlib  # noqa: F401 - before pycolmap (pycolmap first breaks later zlib use)
+
+    import cv2  # noqa: F401 - same reason
+
+    from sfm.colmap_io import read_model
+    from sfm.evaluation import evaluate, read_gt_table
+
+    logging.basicConfig(level=logging.WARNING)
+    data, work = out / "data" / str(n), out / "runs" / str(n) / method
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    shutil.copy(data / "database.db", work / "database.db")
+    import pycolmap
+
+    from sfm.clustering import ClusterOptions, run_cluster
+    from sfm.executors import LocalExecutor
+    from sfm.mapper_input import MapperOptions
+    from sfm.mapping import run_map
+    from sfm.merge import MergeOptions
+    from sfm.pipeline import run_merge
+
+    t0 = time.perf_counter()  # imports done: the time is the mapping's alone
+    if method.startswith("graphsfm"):
+        run_cluster(work, ClusterOptions())
+        with LocalExecutor(int(method.split("-")[1])) as executor:
+            if not run_map(work, MapperOptions(), executor=executor).direct:
+                run_merge(work, MapperOptions(), MergeOptions())
+        model_dir = work / "sparse" / "0"
+    else:
+        pycolmap.logging.minloglevel = 2
+        (work / "images").mkdir()
+        mapper = pycolmap.incremental_mapping if method == "colmap-incremental" else pycolmap.global_mapping
+        models = mapper(str(work / "database.db"), str(work / "images"), str(work / "sparse"))
+        model_dir = work / "sparse" / str(max(models, key=lambda k: models[k].num_reg_images())) if models else None
+    seconds = time.perf_counter() - t0
+    result = {"images": n, "method": method, "time_s": round(seconds, 1), "registered": 0}
+    if model_dir is not None and model_dir.exists():
+        recon = read_model(model_dir)
+        ev = evaluate(recon, read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
+        result.update({"registered": len(recon.images), "points": len(recon.points3D),
+                       "med_rot_deg": round(ev.median_rotation_error_deg, 4), "auc@1": round(ev.auc[1], 3)})
+    (work / "database.db").unlink()
+    (work / "result.json").write_text(json.dumps(result))
+
+
+def fit_exponent(rows: list[dict], lo: int = 500) -> float | None:
+    import numpy as np
+
+    pts = [(r["images"], r["time_s"]) for r in rows if r["images"] >= lo and r.get("time_s")]
+    if len(pts) < 2:
+        return None
+    n, t = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
+    return float(np.polyfit(n, t, 1)[0])
+
+
+def report(out: Path, sizes: list[int], results: dict) -> str:
+    head = ["images", "method", "time_s", "peak_rss_gb", "registered", "points", "med_rot_deg", "auc@1",
+            "time / colmap-incremental"]
+    machine = (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+               f"Python {platform.python_version()}; command: python tools/bench_scaling.py --out {out} "
+               f"--sizes {' '.join(map(str, sizes))}")
+    lines = [machine, "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for n in sizes:
+        base = results.get((n, "colmap-incremental"), {}).get("time_s")
+        for m in METHODS:
+            r = results.get((n, m))
+            if r is None:
+                lines.append(f"| {n} | {m} | skipped | | | | | | |")
+                continue
+            ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
+            lines.append("| " + " | ".join(str(r.get(k, "")) for k in head[:-1]) + f" | {ratio} |")
+    lines += ["", "Fitted exponent b of t = a n^b over 500 images and up:"]
+    for m in METHODS:
+        b = fit_exponent([r for (n, mm), r in sorted(results.items()) if mm == m])
+        lines.append(f"- {m}: " + (f"{b:.2f}" if b is not None else "too few sizes"))
+    return "\n".join(lines) + "\n"
+
+
+def plot(out: Path, results: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    for m in METHODS:
+        rows = sorted((n, r["time_s"]) for (n, mm), r in results.items() if mm == m and r.get("time_s"))
+        if rows:
+            b = fit_exponent([{"images": n, "time_s": t} for n, t in rows])
+            label = m + (f" (b = {b:.2f})" if b is not None else "")
+            ax.plot([n for n, _ in rows], [t for _, t in rows], "o-", label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("images (synthetic aerial, 20% outlier matches)")
+    ax.set_ylabel("time from database to final model (s)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "scaling.png", dpi=120)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, required=True, help="folder for data, cached runs, scaling.md/png")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[250, 500, 1000, 2000, 4000])
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--skip-peers-above", type=int, default=2000, help="no pycolmap run above this size")
+    parser.add_argument("--force", action="store_true", help="rerun cached results")
+    parser.add_argument("--run", nargs=2, metavar=("N", "METHOD"), help=argparse.SUPPRESS)  # the child
+    args = parser.parse_args(argv)
+    out = args.out.resolve()
+    if args.run:
+        one_run(out, int(args.run[0]), args.run[1])
+        return 0
+    results: dict = {}
+    for n in args.sizes:
+        data = out / "data" / str(n)
+        if not (data / "database.db").exists():
+            from sfm.synthetic import SynthOptions, run_synth
+
+            shutil.rmtree(data, ignore_errors=True)
+            run_synth(data, SynthOptions(scene="aerial", num_images=n, outlier_ratio=0.2, seed=0))
+        for m in args.methods:
+            if m in PEERS and n > args.skip_peers_above:
+                continue
+            cache = out / "runs" / str(n) / f"{m}.json"
+            if cache.exists() and not args.force:
+                results[(n, m)] = json.loads(cache.read_text())
+                continue
+            print(f"{n} images, {m} ...", flush=True)
+            code, seconds, peak = run_child([sys.executable, __file__, "--out", str(out), "--run", str(n), m])
+            if code != 0:
+                print(f"  failed with exit code {code}; not cached", flush=True)
+                continue
+            r = json.loads((out / "runs" / str(n) / m / "result.json").read_text())
+            r["peak_rss_gb"] = round(peak / 1024**3, 2)
+            r["wall_s"] = round(seconds, 1)
+            cache.write_text(json.dumps(r))
+            results[(n, m)] = r
+            print(f"  {r['time_s']} s, {r['registered']}/{n} registered, peak {r['peak_rss_gb']} GB", flush=True)
+        text = report(out, args.sizes, results)
+        (out / "scaling.md").write_text(text)
+    print(text)
+    if results:
+        plot(out, results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
