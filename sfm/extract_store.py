@@ -4,9 +4,10 @@
 each image as soon as its worker returns it. Each image is written (camera if new, image row,
 keypoints, descriptors) in one transaction, so an interrupted run loses only the images in
 flight, and a resumed run skips the images that already have keypoints in ``WORK/database.db``.
-``WORK/extract.json`` (written atomically) maps each shared camera's group key to its camera id
-and records the options, so a resumed run puts new images on the cameras it made before (and
-the options live in the stage ledger, ``WORK/stages.json``); COLMAP's tables hold nothing extra.
+``WORK/extract.json`` (written atomically) maps each shared camera's group key to its camera id,
+so a resumed run puts new images on the cameras it made before; the options a run used are
+compared in the stage ledger, ``WORK/stages.json`` (:func:`extract_ledger`), which drops the
+database when they changed.  COLMAP's tables hold nothing extra.
 """
 
 from __future__ import annotations
@@ -71,7 +72,6 @@ class ExtractWriter:
             str(k): v for k, v in (cameras.items() if isinstance(cameras, dict) else ())
             if isinstance(v, int) and v in self.cameras  # a kill may leave ids never committed
         }  # fmt: skip
-        self.saved_options = data.get("options")
 
     def _load(self) -> dict:
         if not self.sidecar.exists():

@@ -156,8 +156,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
     state = MapperState(payload, opts)
     models: list[Reconstruction] = []
     tried: set = set()
-    # COLMAP's rule: a small input keeps smaller models (a two-image input gives a two-view model).
-    min_size = max(2, min(opts.min_model_size, int(0.8 * len(payload.names))))
+    min_size = opts.smallest_model(len(payload.names))
     while len(models) < opts.max_num_models:
         if not _try_initial_pair(state, tried):
             break

@@ -88,3 +88,8 @@ class MapperOptions:
     max_num_models: int = 50
     seed: int = 0
 
+    def smallest_model(self, num_images: int) -> int:
+        """The fewest registered images a model of ``num_images`` input images keeps: COLMAP's
+        min(min_model_size, 0.8 N), never below 2 (a two-image input gives a two-view model)."""
+        return max(2, min(self.min_model_size, int(0.8 * num_images)))
+

@@ -150,7 +150,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
             fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction (sizes {sizes})"]
     failed = fields["failed_clusters"] = [c["cluster"] for c in per_cluster if c["error"]]
     if failed:
-        fields["warnings"].append(f"{len(failed)} cluster(s) failed and are left out: {', '.join(failed)}")
+        fields["warnings"].append(failed_clusters_warning(failed))
     for warning in fields["warnings"]:
         log.warning("%s", warning)
     update_report(workspace, fields, {"T_SfM": elapsed})
@@ -159,6 +159,10 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         raise NoModelError("no model could be made: no image pair could be reconstructed (too few inliers or too small baselines)")
     log.info("map: %d clusters, %d local models, %.1f s", len(payloads), len(flat), elapsed)
     return MapResult(num_images, len(payloads), flat, per_cluster, round(elapsed, 3), direct)
+
+
+def failed_clusters_warning(failed: list[str]) -> str:
+    return f"{len(failed)} cluster(s) failed and are left out: {', '.join(failed)}"
 
 
 def _folder(workspace: Path, direct: bool, label: str) -> Path:

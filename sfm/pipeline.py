@@ -16,7 +16,7 @@ from pathlib import Path
 from sfm.errors import NoModelError
 from sfm.incremental import refine_with_poses
 from sfm.mapper_input import MapperOptions
-from sfm.mapping import load_payloads, write_models
+from sfm.mapping import failed_clusters_warning, load_payloads, write_models
 from sfm.merge import (
     MergeOptions,
     anchor_from_model,
@@ -87,7 +87,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
                              min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
     for (plan, poses, params), payload in zip(components, payloads):
         final = refine_with_poses(payload, mapper_options, poses, params)
-        if len(final.images) >= max(2, min(mapper_options.min_model_size, int(0.8 * len(payload.names)))):
+        if len(final.images) >= mapper_options.smallest_model(len(payload.names)):
             finals.append(final)
     finals.sort(key=lambda m: -len(m.images))
     written = write_models(finals, workspace / "sparse")
@@ -97,8 +97,8 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     fields = {"num_models": len(finals), "num_local_models": len(models), "merge_components": len(plans), "models": written}
     if written:
         fields.update({k: written[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
-    fields["warnings"] = [w for w in read_json(workspace / REPORT).get("warnings", []) if "cluster(s) failed" in w] \
-        if (workspace / REPORT).exists() else []  # map's failed clusters still hold; nothing else from before
+    failed = read_json(workspace / REPORT).get("failed_clusters", []) if (workspace / REPORT).exists() else []
+    fields["warnings"] = [failed_clusters_warning(failed)] if failed else []  # map's still hold, nothing else
     if len(finals) > 1:
         msg = (f"{len(finals)} models: the scene splits into {len(finals)} parts that share no aligned cluster pair "
                f"(sizes {', '.join(str(len(f.images)) for f in finals)})")

@@ -186,9 +186,5 @@ class Ledger:
     def finish(self, stage: str, output_fp: str, **fields: Any) -> None:
         self.update(stage, done=True, output=output_fp, finished=time.strftime("%Y-%m-%dT%H:%M:%S"), **fields)
 
-    def output(self, stage: str) -> str | None:
-        rec = self.record(stage)
-        return rec.get("output") if rec and rec.get("done") else None
-
     def save(self) -> None:
         write_json_atomic(self.path, self.data)

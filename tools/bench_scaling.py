@@ -73,49 +73,27 @@ def run_child(argv: list[str]) -> tuple[int, float, int]:
 
 
 def one_run(out: Path, n: int, method: str) -> None:
-    """The child: map DIR/data/<n>/database.db with ``method``; write its model and metrics."""
+    """The child: map DIR/data/<n>/database.db with ``method`` (bench_mapping's runners, the
+    time from database to final model); write its metrics to ``result.json``."""
     import logging
-    import zlib  # noqa: F401 - before pycolmap (pycolmap first breaks later zlib use)
 
-    import cv2  # noqa: F401 - same reason
+    from bench_mapping import row, run_colmap, run_graphsfm
 
-    from sfm.colmap_io import read_model
-    from sfm.evaluation import evaluate, read_gt_table
+    from sfm.clustering import ClusterOptions
+    from sfm.evaluation import read_gt_table
 
     logging.basicConfig(level=logging.WARNING)
     data, work = out / "data" / str(n), out / "runs" / str(n) / method
     shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
-    shutil.copy(data / "database.db", work / "database.db")
-    import pycolmap
-
-    from sfm.clustering import ClusterOptions, run_cluster
-    from sfm.executors import LocalExecutor
-    from sfm.mapper_input import MapperOptions
-    from sfm.mapping import run_map
-    from sfm.merge import MergeOptions
-    from sfm.pipeline import run_merge
-
-    t0 = time.perf_counter()  # imports done: the time is the mapping's alone
-    if method.startswith("graphsfm"):
-        run_cluster(work, ClusterOptions())
-        with LocalExecutor(int(method.split("-")[1])) as executor:
-            if not run_map(work, MapperOptions(), executor=executor).direct:
-                run_merge(work, MapperOptions(), MergeOptions())
-        model_dir = work / "sparse" / "0"
+    if method.startswith("graphsfm"):  # the default cluster size, as graphsfm cluster uses
+        s_max = ClusterOptions().max_cluster_size
+        model_dir, seconds, _ = run_graphsfm(data / "database.db", work, s_max, int(method.split("-")[1]))
     else:
-        pycolmap.logging.minloglevel = 2
-        (work / "images").mkdir()
-        mapper = pycolmap.incremental_mapping if method == "colmap-incremental" else pycolmap.global_mapping
-        models = mapper(str(work / "database.db"), str(work / "images"), str(work / "sparse"))
-        model_dir = work / "sparse" / str(max(models, key=lambda k: models[k].num_reg_images())) if models else None
-    seconds = time.perf_counter() - t0
-    result = {"images": n, "method": method, "time_s": round(seconds, 1), "registered": 0}
-    if model_dir is not None and model_dir.exists():
-        recon = read_model(model_dir)
-        ev = evaluate(recon, read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
-        result.update({"registered": len(recon.images), "points": len(recon.points3D),
-                       "med_rot_deg": round(ev.median_rotation_error_deg, 4), "auc@1": round(ev.auc[1], 3)})
+        model_dir, seconds = run_colmap(data / "database.db", work, method.split("-")[1])
+    r = row(method, model_dir if model_dir is not None and model_dir.exists() else None, seconds,
+            read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
+    result = {"images": n, **{k: r[k] for k in ("method", "time_s", "registered", "points", "med_rot_deg", "auc@1")
+                              if k in r}}
     (work / "database.db").unlink()
     (work / "result.json").write_text(json.dumps(result))
 
