@@ -2,8 +2,8 @@
 
 The solver plumbing shared by bundle adjustment and pose refinement: the robust measurement
 noise (Huber, Cauchy or none on an isotropic 1 px sigma), the optimiser with its elimination
-ordering ("points_first": every point eliminated first, the Schur ordering of BA; or GTSAM's
-METIS / COLAMD), stopping rules and an iteration log, and running it with GTSAM's stdout
+ordering ("points_first": every point eliminated first, the Schur ordering of BA; GTSAM's
+METIS / COLAMD; "auto": points first for small problems, METIS for large ones), stopping rules and an iteration log, and running it with GTSAM's stdout
 chatter sent to the debug log and a GTSAM error (e.g. an indeterminant system) turned into
 "keep the input values". The options are those of :class:`backend.bundle_adjustment.BAOptions`.
 """
@@ -40,14 +40,22 @@ def robust_noise(loss: str, scale: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Robust.Create(estimators[loss].Create(scale), base)
 
 
+# Above this many factors "auto" orders by METIS: points first would hold a dense Hessian
+# block per point over its cameras (~5 KB per observation), half a gigabyte at this size.
+AUTO_METIS_OBSERVATIONS = 100_000
+
+
 def lm_optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtOptimizer:
     """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log."""
-    if options.ordering not in ("points_first", "metis", "colamd"):
+    if options.ordering not in ("auto", "points_first", "metis", "colamd"):
         raise ValueError(
-            f"unknown ordering {options.ordering!r}; use 'points_first', 'metis' or 'colamd'"
+            f"unknown ordering {options.ordering!r}; use 'auto', 'points_first', 'metis' or 'colamd'"
         )
+    ordering_name = options.ordering
+    if ordering_name == "auto":
+        ordering_name = "metis" if graph.size() > AUTO_METIS_OBSERVATIONS else "points_first"
     params = gtsam.LevenbergMarquardtParams()
-    if options.ordering == "points_first":
+    if ordering_name == "points_first":
         # The classic BA ordering: eliminating every point first leaves the reduced camera
         # system (a Schur complement); no graph partitioning to compute.
         keys = list(values.keys())
@@ -56,7 +64,7 @@ def lm_optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtO
             ordering.push_back(key)
         params.setOrdering(ordering)
     else:
-        params.setOrderingType(options.ordering.upper())
+        params.setOrderingType(ordering_name.upper())
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(options.relative_tolerance)
     params.setAbsoluteErrorTol(options.absolute_tolerance)

@@ -105,10 +105,12 @@ def build_tracks(num_keypoints: np.ndarray, matches: Iterable[tuple[int, int, np
     return Tracks(np.concatenate(parts_img).astype(np.int64), np.concatenate(parts_kp).astype(np.int64), starts.astype(np.int64))
 
 
-def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int) -> np.ndarray:
+def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int, block_entries: int = 4_000_000) -> np.ndarray:
     """Number of common neighbours of each edge's ends (triangles through the edge).  A right
     match inside a track seen by L images is confirmed by up to L - 2 others; a wrong match
-    between two tracks by none."""
+    between two tracks by none.  The squared adjacency is formed a block of rows at a time
+    (about ``block_entries`` entries each): whole, it would hold a row of degree² entries per
+    node, gigabytes for a few thousand images."""
     if len(edges_u) == 0:
         return np.zeros(0, dtype=np.int64)
     nodes, inv = np.unique(np.concatenate([edges_u, edges_v]), return_inverse=True)
@@ -116,19 +118,62 @@ def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int) -> np.nd
     m = len(nodes)
     adj = sp.coo_matrix((np.ones(2 * len(u), dtype=np.int32), (np.r_[u, v], np.r_[v, u])), shape=(m, m)).tocsr()
     adj.data[:] = 1  # duplicate matches count once
-    common = (adj @ adj).multiply(adj).tocsr()
-    return np.asarray(common[u, v]).ravel().astype(np.int64)
+    # Entries of row r of adj @ adj: at most the summed degrees of r's neighbours.
+    work = np.cumsum(adj @ np.diff(adj.indptr).astype(np.int64))
+    cuts = np.unique(np.r_[0, np.searchsorted(work, np.arange(block_entries, work[-1], block_entries)), m])
+    support = np.zeros(len(u), dtype=np.int64)
+    edge_order = np.argsort(u, kind="stable")
+    edge_bounds = np.searchsorted(u[edge_order], cuts)
+    for k in range(len(cuts) - 1):
+        lo, hi = int(cuts[k]), int(cuts[k + 1])
+        if hi <= lo:
+            continue
+        rows = adj[lo:hi]
+        common = (rows @ adj).multiply(rows).tocsr()
+        sel = edge_order[edge_bounds[k] : edge_bounds[k + 1]]
+        support[sel] = np.asarray(common[u[sel] - lo, v[sel]]).ravel()
+    return support
+
+
+def _consistent_groups(edges_u: np.ndarray, edges_v: np.ndarray, node_image: np.ndarray):
+    """Connected components of the given edges: (nodes sorted by component then image,
+    component label of each, whether each label holds some image twice)."""
+    nodes, inv = np.unique(np.concatenate([edges_u, edges_v]), return_inverse=True)
+    k = len(edges_u)
+    graph = sp.coo_matrix((np.ones(k, dtype=np.int8), (inv[:k], inv[k:])), shape=(len(nodes),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    images = node_image[nodes]
+    order = np.lexsort((images, labels))
+    nodes, labels, images = nodes[order], labels[order], images[order]
+    repeated = (labels[1:] == labels[:-1]) & (images[1:] == images[:-1])
+    bad = np.zeros(int(labels.max(initial=-1)) + 1, dtype=bool)
+    bad[labels[1:][repeated]] = True
+    return nodes, labels, bad
 
 
 def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_image: np.ndarray,
                               support: np.ndarray) -> list[np.ndarray]:
     """Union-find over the given edges, best supported first, refusing any union that would
     hold two nodes of one image, and any union of two tracks (both of >= 2 nodes) through an
-    edge no third view confirms; returns the components of size >= 2, sorted by image."""
+    edge no third view confirms; returns the components of size >= 2, sorted by image.
+
+    The confirmed edges (support >= 1) all come before the others, and among them only an
+    image conflict can refuse a union.  So a component of the confirmed edges that holds no
+    image twice is exactly what the union of its edges builds, in any order: those come from
+    scipy at once, and the Python loop runs only over the confirmed edges of the other
+    components and over the unconfirmed edges."""
     order = np.argsort(-support, kind="stable")
     edges_u, edges_v, support = edges_u[order], edges_v[order], support[order]
-    parent: dict[int, int] = {}
-    members: dict[int, dict[int, int]] = {}  # root -> {image: node}
+    strong = support > 0
+    g_nodes, g_labels, g_bad = _consistent_groups(edges_u[strong], edges_v[strong], node_image)
+    bounds = np.flatnonzero(np.r_[True, g_labels[1:] != g_labels[:-1], True]) if len(g_labels) else np.zeros(1, np.int64)
+    good = ~g_bad[g_labels[bounds[:-1]]]
+    roots = g_nodes[bounds[:-1]]  # the first node of each group is its root
+    in_good = np.repeat(good, np.diff(bounds))
+    parent: dict[int, int] = dict(zip(g_nodes[in_good].tolist(), np.repeat(roots, np.diff(bounds))[in_good].tolist()))
+    group_of_root = {int(r): k for k, r in enumerate(roots.tolist()) if good[k]}
+    img = node_image.tolist()
+    members: dict[int, dict[int, int]] = {}  # root -> {image: node}, materialised when touched
 
     def find(x: int) -> int:
         root = x
@@ -138,26 +183,38 @@ def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_ima
             parent[x], x = root, parent[x]
         return root
 
-    img = node_image.tolist()
-    for u, v, sup in zip(edges_u.tolist(), edges_v.tolist(), support.tolist()):
+    def members_of(root: int, node: int) -> dict[int, int]:
+        got = members.get(root)
+        if got is None:
+            k = group_of_root.get(root)
+            if k is None:
+                return {img[node]: node}
+            got = {img[x]: x for x in g_nodes[bounds[k] : bounds[k + 1]].tolist()}
+            members[root] = got
+        return got
+
+    node_label = np.full(len(node_image), -1, dtype=np.int64)
+    node_label[g_nodes] = g_labels
+    loop = ~strong
+    loop[strong] = g_bad[node_label[edges_u[strong]]]
+    absorbed: set[int] = set()  # roots joined into another root
+    for u, v, sup in zip(edges_u[loop].tolist(), edges_v[loop].tolist(), support[loop].tolist()):
         ru, rv = find(u), find(v)
         if ru == rv:
             continue
-        mu = members.get(ru) or {img[u]: u}
-        mv = members.get(rv) or {img[v]: v}
+        mu, mv = members_of(ru, u), members_of(rv, v)
         if sup == 0 and len(mu) > 1 and len(mv) > 1:
             continue  # an unconfirmed bridge between two tracks
         if len(mu) < len(mv):
             ru, rv, mu, mv = rv, ru, mv, mu
         if any(k in mu for k in mv):
             continue  # would put two keypoints of one image in a track
+        absorbed.add(rv)
         mu.update(mv)
         members[ru] = mu
         members.pop(rv, None)
         parent[rv] = ru
-    comps = []
-    for m in members.values():
-        if len(m) >= 2:
-            comps.append(np.array([m[k] for k in sorted(m)], dtype=np.int64))
+    comps = [np.array([m[k] for k in sorted(m)], dtype=np.int64) for m in members.values() if len(m) >= 2]
+    comps += [g_nodes[bounds[k] : bounds[k + 1]] for r, k in group_of_root.items() if r not in members and r not in absorbed]
     comps.sort(key=lambda a: int(a.min()))
     return comps

@@ -7,7 +7,7 @@ import numpy as np
 from sfm.geometry import look_at
 from sfm.synthetic import SynthOptions, make_scene
 from sfm.synthetic_matching import simulate_matching
-from sfm.tracks import build_tracks
+from sfm.tracks import _conflict_free_components, _triangle_support, build_tracks
 from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
 
 
@@ -55,6 +55,50 @@ def test_long_tracks_survive_surviving_outliers():
         pure += max(pts.count(p) for p in set(pts)) >= len(pts) - 1  # at most one wrong observation
     assert tracks.num_tracks > 0.85 * len(np.unique(s.obs_point))
     assert pure > 0.9 * tracks.num_tracks
+
+
+def _greedy_reference(u, v, node_image, support):
+    """The rule of ``_conflict_free_components`` edge by edge, with no shortcut."""
+    parent = list(range(len(node_image)))
+    members = [{int(node_image[x]): x} for x in range(len(node_image))]
+
+    def find(x):
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    for k in np.argsort(-support, kind="stable"):
+        ru, rv = find(int(u[k])), find(int(v[k]))
+        if ru == rv or (support[k] == 0 and len(members[ru]) > 1 and len(members[rv]) > 1):
+            continue
+        if len(members[ru]) < len(members[rv]):
+            ru, rv = rv, ru
+        if set(members[ru]) & set(members[rv]):
+            continue
+        members[ru].update(members[rv])
+        parent[rv] = ru
+    comps = [np.array([m[i] for i in sorted(m)]) for x, m in enumerate(members) if find(x) == x and len(m) >= 2]
+    return sorted(comps, key=lambda a: int(a.min()))
+
+
+def test_conflict_free_components_equal_the_plain_greedy_union():
+    """The scipy shortcut for consistent confirmed components gives exactly what the greedy
+    union gives, on random match graphs full of conflicts and unconfirmed bridges."""
+    rng = np.random.default_rng(0)
+    for trial in range(30):
+        n_images, per_image = int(rng.integers(3, 9)), int(rng.integers(2, 12))
+        node_image = np.repeat(np.arange(n_images), per_image)
+        n = len(node_image)
+        m = int(rng.integers(1, 4 * n))
+        u, v = rng.integers(0, n, m), rng.integers(0, n, m)
+        keep = node_image[u] != node_image[v]
+        u, v = u[keep], v[keep]
+        support = _triangle_support(u, v, n)
+        got = _conflict_free_components(u, v, node_image, support)
+        want = _greedy_reference(u, v, node_image, support)
+        assert [c.tolist() for c in got] == [c.tolist() for c in want], trial
+        # Blocks of a few entries give the same triangle counts as one block.
+        np.testing.assert_array_equal(_triangle_support(u, v, n, block_entries=7), support)
 
 
 def test_dlt_is_exact_and_angles_are_right():
