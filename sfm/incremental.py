@@ -20,12 +20,12 @@ import logging
 import cv2
 import numpy as np
 
-from backend.bundle_adjustment import refine_pose
 from sfm.mapper_input import MapperInput, MapperOptions
+from sfm.mapper_output import log_progress, to_reconstruction
 from sfm.mapper_state import MapperState
-from sfm.triangulation import triangulate_dlt
 from sfm.model import Reconstruction
 from sfm.recording import Recorder
+from sfm.triangulation import triangulate_dlt
 
 log = logging.getLogger(__name__)
 
@@ -141,11 +141,11 @@ def _register_next(state: MapperState) -> bool:
         if len(inliers) < opts.abs_pose_min_num_inliers or len(inliers) < opts.abs_pose_min_inlier_ratio * len(rows):
             state.note_failure(i, len(rows))
             continue
+        # Least squares on the RANSAC inliers, in normalised coordinates like the RANSAC (the
+        # local BA that follows refines the pose again, robustly and in pixels).
+        rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], np.eye(3), None, rvec, tvec)
         R, _ = cv2.Rodrigues(rvec)
-        cam = state.camera_of(i)
-        refined = refine_pose(cam.model, state.params[state.cam_index[i]], R, tvec.ravel(), X[inliers],
-                              state.obs_px[rows[inliers]], loss=opts.loss, loss_scale=opts.loss_scale)
-        state.register(i, refined.rotation, refined.translation)
+        state.register(i, R, tvec.ravel())
         return True
     return False
 
@@ -161,7 +161,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
         if not _try_initial_pair(state, tried):
             break
         last_global = state.num_registered
-        state.log_progress(recorder)
+        log_progress(state, recorder)
         while _register_next(state):
             state.triangulate_new(state.last_registered)
             if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= 10:
@@ -170,11 +170,11 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
                 last_global = state.num_registered
             else:
                 state.local_ba(state.last_registered)
-            state.log_progress(recorder)
+            log_progress(state, recorder)
         state.global_ba(final=True)
         state.retriangulate()
         state.global_ba(final=True)
-        model = state.to_reconstruction()
+        model = to_reconstruction(state)
         n = state.num_registered
         state.close_model()
         if n >= min_size:
@@ -209,4 +209,4 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     state.retriangulate()
     if state.obs_inlier.sum() > 1.02 * before:
         state.global_ba(final=True)
-    return state.to_reconstruction()
+    return to_reconstruction(state)

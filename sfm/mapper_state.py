@@ -14,12 +14,11 @@ import logging
 import numpy as np
 
 from backend.bundle_adjustment import BAOptions, bundle_adjust
-from sfm.camera_models import calibration_matrix, project, unproject
+from backend.track_subset import select_tracks
+from sfm.camera_models import project, unproject
 from sfm.mapper_input import MapperInput, MapperOptions
-from sfm.model import Camera, Image, Point3D, Reconstruction
-from sfm.recording import Recorder, log_camera
 from sfm.tracks import build_tracks
-from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
+from sfm.triangulation import depths, max_triangulation_angles, refine_points, triangulate_dlt
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +104,9 @@ class MapperState:
         return self.priors[self.cam_index[i]]
 
     def focal(self, i: int) -> float:
-        c = self.cam_index[i]
+        return self._camera_focal(self.cam_index[i])
+
+    def _camera_focal(self, c: int) -> float:
         spec_focal = self.params[c][[0, 1]] if self.priors[c].model in ("PINHOLE", "OPENCV") else self.params[c][[0]]
         return float(np.mean(spec_focal))
 
@@ -300,8 +301,44 @@ class MapperState:
     def global_ba(self, final: bool = False) -> None:
         free = np.flatnonzero(self.registered)
         tracks = np.flatnonzero(self.track_valid)
-        self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100 if final else 25, 1e-5 if final else 1e-3)
+        subset = self._ba_subset(tracks, final)
+        self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 100 if final else 25, 1e-5 if final else 1e-3)
+        if len(subset) < len(tracks):
+            self._refine_points(np.setdiff1d(tracks, subset))
         self.filter_observations(tracks)
+
+    def _ba_subset(self, tracks: np.ndarray, final: bool) -> np.ndarray:
+        """The tracks a global BA optimises.  A final BA: all, or those ``select_tracks`` picks
+        when their observations exceed ``ba_max_observations``.  A global BA while the model
+        grows: each image's best track in each grid cell (the subset's first level), as
+        TheiaSfM does: it only has to keep the growing model from drifting, and the final BAs
+        refine everything."""
+        budget = self.opts.ba_max_observations if final else 0
+        rows, owner = _gather(self.starts, tracks)
+        rows_mask = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
+        if (final and budget <= 0) or rows_mask.sum() <= budget:
+            return tracks
+        rows, owner = rows[rows_mask], owner[rows_mask]
+        err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
+        sizes = np.array([[p.width, p.height] for p in self.priors], dtype=np.float64)[self.cam_index]
+        keep = select_tracks(self.obs_image[rows], owner, self.obs_px[rows], sizes, np.minimum(err, 1e6),
+                             len(tracks), budget)
+        log.log(logging.INFO if final else logging.DEBUG, "%s: global BA on %d of %d tracks (%d observations > ba_max_observations %d); the "
+                 "other points are re-estimated with the cameras held", self.payload.label, int(keep.sum()),
+                 len(tracks), len(rows), budget)
+        return tracks[keep]
+
+    def _refine_points(self, tracks: np.ndarray) -> None:
+        """Re-estimate the given points from their inlier rows with the cameras held."""
+        rows, owner = _gather(self.starts, tracks)
+        rows_mask = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
+        rows, owner = rows[rows_mask], owner[rows_mask]
+        starts = np.searchsorted(owner, np.arange(len(tracks) + 1))
+        img = self.obs_image[rows]
+        focal = np.array([self._camera_focal(c) for c in range(len(self.priors))])[self.cam_index[img]]
+        huber = self.opts.loss_scale / focal if self.opts.loss != "none" else np.full(len(rows), 1e6)
+        self.track_xyz[tracks] = refine_points(self.R[img], self.t[img], self.obs_norm[rows], starts,
+                                               self.track_xyz[tracks], huber)
 
     def filter_observations(self, tracks: np.ndarray) -> None:
         """Drop rows above ``max_reproj_error`` and points left with < 2 rows or too small an
@@ -327,53 +364,3 @@ class MapperState:
         self.track_valid[dead_tracks] = False
         drows, _ = _gather(self.starts, dead_tracks)
         self.obs_inlier[drows] = False
-
-    # ------------------------------------------------------------------ output
-    def to_reconstruction(self) -> Reconstruction:
-        recon = Reconstruction()
-        for c, key in enumerate(self.cam_keys):
-            prior = self.priors[c]
-            if np.any(self.registered & (self.cam_index == c)):
-                recon.add_camera(Camera(key, prior.model, prior.width, prior.height, self.params[c].copy()))
-        for i in np.flatnonzero(self.registered):
-            recon.add_image(Image(self.payload.image_ids[i], self.names[i], self.cam_keys[self.cam_index[i]],
-                                  self.R[i].copy(), self.t[i].copy(), np.asarray(self.payload.keypoints[i])[:, :2]))
-        rows = np.flatnonzero(self.obs_inlier & self.registered[self.obs_image] & self.track_valid[self.obs_track])
-        tr = self.obs_track[rows]
-        order = np.argsort(tr, kind="stable")
-        rows, tr = rows[order], tr[order]
-        bounds = np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True])
-        ids = np.asarray(self.payload.image_ids)
-        next_id = 1
-        for s, e in zip(bounds[:-1], bounds[1:]):
-            if e - s < 2:
-                continue
-            r = rows[s:e]
-            track = list(zip(ids[self.obs_image[r]].tolist(), self.obs_kp[r].tolist()))
-            color = np.full(3, 128, np.uint8)
-            if self.payload.colors is not None:
-                color = np.asarray(self.payload.colors[self.obs_image[r[0]]][self.obs_kp[r[0]]], dtype=np.uint8)
-            recon.points3D[next_id] = Point3D(self.track_xyz[tr[s]].copy(), track, color)
-            for (iid, kp) in track:
-                recon.images[iid].point3D_ids[kp] = next_id
-            next_id += 1
-        recon._next_point_id = next_id
-        recon.update_point_errors()
-        return recon
-
-    def log_progress(self, recorder: Recorder) -> None:
-        """``clusters/<label>/points``, the new camera and the last BA's RMS on the
-        ``registration`` timeline: the model growing image by image."""
-        if not recorder.enabled:
-            return
-        import rerun as rr
-
-        label = self.payload.label
-        recorder.set_time("registration", self.num_registered)
-        recorder.log(f"clusters/{label}/points", rr.Points3D(self.track_xyz[self.track_valid]))
-        recorder.log(f"clusters/{label}/ba_rms_px", rr.Scalars(self.last_ba_rms))
-        i = self.last_registered
-        if i >= 0:
-            c = self.cam_index[i]
-            log_camera(recorder, f"clusters/{label}/cams/{self.names[i]}", self.R[i], self.t[i],
-                       calibration_matrix(self.priors[c].model, self.params[c]), self.priors[c].width, self.priors[c].height)

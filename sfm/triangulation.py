@@ -66,3 +66,59 @@ def max_triangulation_angles(centers: np.ndarray, points: np.ndarray, starts: np
 def depths(rotations: np.ndarray, translations: np.ndarray, points_per_row: np.ndarray) -> np.ndarray:
     """Depth (z in the camera frame) of each observation's point."""
     return np.einsum("oj,oj->o", rotations[:, 2, :], points_per_row) + translations[:, 2]
+
+
+def refine_points(rotations: np.ndarray, translations: np.ndarray, xy_norm: np.ndarray, starts: np.ndarray,
+                  points: np.ndarray, huber: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """Each point's reprojection error minimised with its cameras held (Gauss-Newton, batched).
+
+    Observations grouped by point as in :func:`triangulate_dlt`; ``points`` (P,3) the start;
+    ``huber`` (O,) the Huber threshold of each observation in normalised units (pixels over
+    focal length).  The error is measured on the normalised image plane, which is the pixel
+    error over the focal length up to the (small) distortion.  Observations behind their camera
+    weigh nothing; a point keeps its start if its normal equations are singular or its robust
+    cost did not go down.
+    """
+    start = np.array(points, dtype=np.float64, copy=True)
+    lengths = np.diff(starts)
+    if len(start) == 0 or lengths.sum() == 0:
+        return start
+    owner = np.repeat(np.arange(len(start)), lengths)
+    nonempty = lengths > 0
+    first = starts[:-1][nonempty]
+
+    def per_point(values: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(start),) + values.shape[1:])
+        out[nonempty] = np.add.reduceat(values, first, axis=0)
+        return out
+
+    def residuals(X: np.ndarray):
+        xc = np.einsum("oij,oj->oi", rotations, X[owner]) + translations
+        front = xc[:, 2] > 1e-12
+        z = np.where(front, xc[:, 2], 1.0)
+        uv = xc[:, :2] / z[:, None]
+        r = uv - xy_norm
+        norm = np.linalg.norm(r, axis=1)
+        rho = np.where(norm <= huber, 0.5 * norm**2, huber * (norm - 0.5 * huber))
+        rho = np.where(front, rho, 0.5 * huber**2 + 1.0)  # behind the camera: worse than any inlier
+        return r, norm, front, z, uv, per_point(rho)
+
+    X = start.copy()
+    for _ in range(iterations):
+        r, norm, front, z, uv, _ = residuals(X)
+        w = np.where(norm <= huber, 1.0, huber / np.maximum(norm, 1e-300)) * front
+        # d(uv)/dX = (1/z) [[1, 0, -u], [0, 1, -v]] R
+        J = np.zeros((len(z), 2, 3))
+        J[:, 0, 0] = J[:, 1, 1] = 1.0
+        J[:, :, 2] = -uv
+        J = np.einsum("oab,obc->oac", J, rotations) / z[:, None, None]
+        H = per_point(np.einsum("o,oai,oaj->oij", w, J, J))
+        g = per_point(np.einsum("o,oai,oa->oi", w, J, r))
+        scale = np.maximum(np.einsum("pii->p", H), 1e-300)
+        ok = np.abs(np.linalg.det(H)) > 1e-12 * scale**3
+        step = np.zeros_like(X)
+        step[ok] = -np.linalg.solve(H[ok], g[ok][:, :, None])[:, :, 0]
+        X = X + step
+    worse = residuals(X)[-1] > residuals(start)[-1]
+    X[worse] = start[worse]
+    return X

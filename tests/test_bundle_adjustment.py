@@ -121,7 +121,7 @@ def test_pose_conversions_round_trip_and_agree_with_gtsam_projection():
     )
 
 
-@pytest.mark.parametrize("ordering", ["points_first", "metis", "colamd"])
+@pytest.mark.parametrize("ordering", ["auto", "points_first", "metis", "colamd"])
 def test_exact_observations_recover_the_truth(ordering):
     truth = ring_scene()
     start = perturb(truth, rot_deg=2.0, trans_frac=0.05)

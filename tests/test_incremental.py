@@ -32,6 +32,22 @@ def test_orbit_with_outliers_is_fully_and_accurately_registered(tmp_path):
     assert not (tmp_path / "sparse" / "1").exists()
 
 
+def test_final_ba_on_a_track_subset_when_over_budget(tmp_path):
+    """``--ba-max-observations`` far below the scene's observations: the final BAs optimise the
+    cameras on the selected tracks and re-estimate the other points with the cameras held;
+    every image stays registered and every point stays near the 0.5 px noise."""
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=24, observations_per_image=800, outlier_ratio=0.2, seed=0))
+    assert main(["map", "--workspace", str(tmp_path), "--ba-max-observations", "4000"]) == 0
+    model = read_model(tmp_path / "sparse" / "0")
+    result = evaluate(model, read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
+    assert result.num_registered == 24
+    assert result.median_rotation_error_deg < 0.1
+    observations = sum(len(p.track) for p in model.points3D.values())
+    assert observations > 3 * 4000  # the points outside the subset are kept, not dropped
+    errors = np.array([p.error for p in model.points3D.values()])
+    assert 0.2 < errors.mean() < 1.0
+
+
 def test_two_unrelated_scenes_give_two_models(tmp_path):
     run_synth(tmp_path, SynthOptions(scene="aerial", num_images=20, observations_per_image=500, seed=1))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)

@@ -1,0 +1,65 @@
+"""What :class:`sfm.mapper_state.MapperState` gives out: the model as a
+:class:`sfm.model.Reconstruction`, and the growing model for the Rerun viewer."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from sfm.camera_models import calibration_matrix
+from sfm.mapper_state import MapperState
+from sfm.model import Camera, Image, Point3D, Reconstruction
+from sfm.recording import Recorder, log_camera
+
+
+def to_reconstruction(state: MapperState) -> Reconstruction:
+    """The current model as a :class:`Reconstruction` (points with >= 2 inlier rows)."""
+    recon = Reconstruction()
+    for c, key in enumerate(state.cam_keys):
+        prior = state.priors[c]
+        if np.any(state.registered & (state.cam_index == c)):
+            recon.add_camera(Camera(key, prior.model, prior.width, prior.height, state.params[c].copy()))
+    for i in np.flatnonzero(state.registered):
+        recon.add_image(Image(state.payload.image_ids[i], state.names[i], state.cam_keys[state.cam_index[i]],
+                              state.R[i].copy(), state.t[i].copy(), np.asarray(state.payload.keypoints[i])[:, :2]))
+    rows = np.flatnonzero(state.obs_inlier & state.registered[state.obs_image] & state.track_valid[state.obs_track])
+    tr = state.obs_track[rows]
+    order = np.argsort(tr, kind="stable")
+    rows, tr = rows[order], tr[order]
+    bounds = np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True])
+    ids = np.asarray(state.payload.image_ids)
+    next_id = 1
+    for s, e in itertools.pairwise(bounds):
+        if e - s < 2:
+            continue
+        r = rows[s:e]
+        track = list(zip(ids[state.obs_image[r]].tolist(), state.obs_kp[r].tolist()))
+        color = np.full(3, 128, np.uint8)
+        if state.payload.colors is not None:
+            color = np.asarray(state.payload.colors[state.obs_image[r[0]]][state.obs_kp[r[0]]], dtype=np.uint8)
+        recon.points3D[next_id] = Point3D(state.track_xyz[tr[s]].copy(), track, color)
+        for (iid, kp) in track:
+            recon.images[iid].point3D_ids[kp] = next_id
+        next_id += 1
+    recon._next_point_id = next_id
+    recon.update_point_errors()
+    return recon
+
+
+def log_progress(state: MapperState, recorder: Recorder) -> None:
+    """``clusters/<label>/points``, the new camera and the last BA's RMS on the
+    ``registration`` timeline: the model growing image by image."""
+    if not recorder.enabled:
+        return
+    import rerun as rr
+
+    label = state.payload.label
+    recorder.set_time("registration", state.num_registered)
+    recorder.log(f"clusters/{label}/points", rr.Points3D(state.track_xyz[state.track_valid]))
+    recorder.log(f"clusters/{label}/ba_rms_px", rr.Scalars(state.last_ba_rms))
+    i = state.last_registered
+    if i >= 0:
+        c = state.cam_index[i]
+        log_camera(recorder, f"clusters/{label}/cams/{state.names[i]}", state.R[i], state.t[i],
+                   calibration_matrix(state.priors[c].model, state.params[c]), state.priors[c].width, state.priors[c].height)
