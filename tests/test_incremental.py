@@ -10,9 +10,9 @@ import pytest
 from sfm.cli import main
 from sfm.colmap_io import read_model
 from sfm.evaluation import evaluate, read_gt_table
+from sfm.incremental import reconstruct_incremental
 from sfm.mapper_input import MapperOptions
 from sfm.mapping import load_payloads, run_map
-from sfm.incremental import reconstruct_incremental
 from sfm.synthetic import SynthOptions, run_synth
 
 
