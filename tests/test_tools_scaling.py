@@ -44,8 +44,9 @@ def test_report_table_ratio_and_skipped_peers(tmp_path):
         (500, "colmap-incremental"): {"images": 500, "method": "colmap-incremental", "time_s": 200.0},
         (1000, "graphsfm-2"): {"images": 1000, "method": "graphsfm-2", "time_s": 100.0, "registered": 1000},
     }
-    text = report(tmp_path, [500, 1000], results)
+    text = report(tmp_path, [500, 1000], results, skip_peers_above=500)
     assert "| 500 | graphsfm-2 | 50.0 |" in text and text.count("| 0.25 |") == 1
-    assert "| 1000 | colmap-incremental | skipped |" in text
+    assert "| 1000 | colmap-incremental | skipped (peers above 500 images) |" in text
+    assert "| 500 | graphsfm-1 | not run |" in text
     assert "- graphsfm-2: 1.00" in text and "- colmap-global: too few sizes" in text
     assert np.isfinite(fit_exponent([r for (n, m), r in results.items() if m == "graphsfm-2"]))

@@ -108,7 +108,7 @@ def fit_exponent(rows: list[dict], lo: int = 500) -> float | None:
     return float(np.polyfit(n, t, 1)[0])
 
 
-def report(out: Path, sizes: list[int], results: dict) -> str:
+def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | None = None) -> str:
     head = ["images", "method", "time_s", "peak_rss_gb", "registered", "points", "med_rot_deg", "auc@1",
             "time / colmap-incremental"]
     machine = (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -120,7 +120,9 @@ def report(out: Path, sizes: list[int], results: dict) -> str:
         for m in METHODS:
             r = results.get((n, m))
             if r is None:
-                lines.append(f"| {n} | {m} | skipped | | | | | | |")
+                skipped = m in PEERS and skip_peers_above is not None and n > skip_peers_above
+                why = f"skipped (peers above {skip_peers_above} images)" if skipped else "not run"
+                lines.append(f"| {n} | {m} | {why} | | | | | | |")
                 continue
             ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
             lines.append("| " + " | ".join(str(r.get(k, "")) for k in head[:-1]) + f" | {ratio} |")
@@ -193,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             cache.write_text(json.dumps(r))
             results[(n, m)] = r
             print(f"  {r['time_s']} s, {r['registered']}/{n} registered, peak {r['peak_rss_gb']} GB", flush=True)
-        text = report(out, args.sizes, results)
+        text = report(out, args.sizes, results, args.skip_peers_above)
         (out / "scaling.md").write_text(text)
     print(text)
     if results:
