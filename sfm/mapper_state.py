@@ -218,7 +218,7 @@ class MapperState:
         new = tracks[accepted]
         self.track_xyz[new] = xyz_out[accepted]
         self.track_valid[new] = True
-        rows_all, owner_all = _gather(self.starts, new)
+        rows_all, _ = _gather(self.starts, new)
         on = self.registered[self.obs_image[rows_all]]
         rows_all = rows_all[on]
         err = self.reprojection_errors(rows_all, self.track_xyz[self.obs_track[rows_all]])
@@ -245,10 +245,15 @@ class MapperState:
         return added
 
     # ------------------------------------------------------------------ bundle adjustment
+    def _inlier_rows(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_gather`` restricted to the inlier rows in registered images."""
+        rows, owner = _gather(self.starts, tracks)
+        keep = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
+        return rows[keep], owner[keep]
+
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
                        tolerance: float = 1e-5) -> None:
-        rows, _ = _gather(self.starts, tracks)
-        rows = rows[self.obs_inlier[rows] & self.registered[self.obs_image[rows]]]
+        rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
         images = np.unique(self.obs_image[rows])
@@ -314,25 +319,24 @@ class MapperState:
         TheiaSfM does: it only has to keep the growing model from drifting, and the final BAs
         refine everything."""
         budget = self.opts.ba_max_observations if final else 0
-        rows, owner = _gather(self.starts, tracks)
-        rows_mask = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
-        if (final and budget <= 0) or rows_mask.sum() <= budget:
+        if final and budget <= 0:
             return tracks
-        rows, owner = rows[rows_mask], owner[rows_mask]
+        rows, owner = self._inlier_rows(tracks)
+        if len(rows) <= budget:
+            return tracks
         err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
         sizes = np.array([[p.width, p.height] for p in self.priors], dtype=np.float64)[self.cam_index]
         keep = select_tracks(self.obs_image[rows], owner, self.obs_px[rows], sizes, np.minimum(err, 1e6),
                              len(tracks), budget)
-        log.log(logging.INFO if final else logging.DEBUG, "%s: global BA on %d of %d tracks (%d observations > ba_max_observations %d); the "
-                 "other points are re-estimated with the cameras held", self.payload.label, int(keep.sum()),
-                 len(tracks), len(rows), budget)
+        if final:
+            log.info("%s: final BA on %d of %d tracks (%d observations > ba_max_observations %d); the other points "
+                     "are re-estimated with the cameras held", self.payload.label, int(keep.sum()), len(tracks),
+                     len(rows), budget)
         return tracks[keep]
 
     def _refine_points(self, tracks: np.ndarray) -> None:
         """Re-estimate the given points from their inlier rows with the cameras held."""
-        rows, owner = _gather(self.starts, tracks)
-        rows_mask = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
-        rows, owner = rows[rows_mask], owner[rows_mask]
+        rows, owner = self._inlier_rows(tracks)
         starts = np.searchsorted(owner, np.arange(len(tracks) + 1))
         img = self.obs_image[rows]
         focal = np.array([self._camera_focal(c) for c in range(len(self.priors))])[self.cam_index[img]]

@@ -70,32 +70,17 @@ def build_tracks(num_keypoints: np.ndarray, matches: Iterable[tuple[int, int, np
         empty = np.zeros(0, dtype=np.int64)
         return Tracks(empty, empty, np.zeros(1, dtype=np.int64))
     r, c = np.concatenate(rows), np.concatenate(cols)
-    graph = sp.coo_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(n, n)).tocsr()
-    _, labels = connected_components(graph, directed=False)
     node_image = np.repeat(np.arange(len(num_keypoints)), num_keypoints)
     node_kp = np.arange(n) - offsets[node_image]
-
-    # Only nodes that take part in a match can be in a track of length >= 2.
-    involved = np.zeros(n, dtype=bool)
-    involved[r] = involved[c] = True
-    nodes = np.flatnonzero(involved)
-    lab = labels[nodes]
-    order = np.lexsort((node_image[nodes], lab))
-    nodes, lab = nodes[order], lab[order]
-    bounds = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1], True])
-    sizes = np.diff(bounds)
-    images = node_image[nodes]
-    # A track is inconsistent if two consecutive (image-sorted) observations share an image.
-    same = np.r_[images[1:] == images[:-1], False] & np.r_[lab[1:] == lab[:-1], False]
-    track_idx = np.repeat(np.arange(len(sizes)), sizes)
-    bad_label = np.zeros(len(sizes), dtype=bool)
-    bad_label[track_idx[same]] = True
-    keep_obs = ~bad_label[track_idx]
-    good_images, good_kp = images[keep_obs], node_kp[nodes][keep_obs]
-    good_sizes = sizes[~bad_label]
+    # Components of the matched nodes; those holding no image twice are tracks as they are.
+    g_nodes, g_labels, g_bad = _consistent_groups(r, c, node_image)
+    bounds = np.flatnonzero(np.r_[True, g_labels[1:] != g_labels[:-1], True])
+    keep_obs = ~g_bad[g_labels]
+    good_images, good_kp = node_image[g_nodes[keep_obs]], node_kp[g_nodes[keep_obs]]
+    good_sizes = np.diff(bounds)[~g_bad[g_labels[bounds[:-1]]]]
     # Rebuild the inconsistent components edge by edge, refusing conflicting unions.
     bad_nodes = np.zeros(n, dtype=bool)
-    bad_nodes[nodes[~keep_obs]] = True
+    bad_nodes[g_nodes[~keep_obs]] = True
     sel = bad_nodes[r]
     extra = _conflict_free_components(r[sel], c[sel], node_image, _triangle_support(r[sel], c[sel], n))
     parts_img = [good_images] + [node_image[comp] for comp in extra]
