@@ -23,7 +23,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sfm.executors import ClusterResult, map_cluster
+from sfm.executors import ClusterResult, map_cluster, payload_labels, payload_sizes
 from sfm.mapper_input import MapperInput, MapperOptions
 from sfm.recording import Recorder
 
@@ -132,20 +132,33 @@ class DaskExecutor:
 
         client = self.client()
         run_id = uuid.uuid4().hex[:8]
-        order = sorted(range(len(payloads)), key=lambda k: -len(payloads[k].names))
-        with warnings.catch_warnings():  # a payload is its cluster's data: it has to travel with the task
-            warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
-            futures = {client.submit(_task, payloads[k], options, key=f"sfm-{payloads[k].label}-{run_id}",
-                                     retries=1, pure=False): k for k in order}
+        sizes, labels = payload_sizes(payloads), payload_labels(payloads)
+        pending = iter(sorted(range(len(payloads)), key=lambda k: -sizes[k]))  # largest first
+        futures: dict = {}
+        finished = as_completed()
+
+        def submit_next() -> None:  # two payloads in flight per worker: each is read only then
+            k = next(pending, None)
+            if k is None:
+                return
+            with warnings.catch_warnings():  # a payload is its cluster's data: it travels with the task
+                warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
+                future = client.submit(_task, payloads[k], options, key=f"sfm-{labels[k]}-{run_id}", retries=1, pure=False)
+            futures[future] = k
+            finished.add(future)
+
+        for _ in range(2 * self.num_workers()):
+            submit_next()
         bar = tqdm(total=len(payloads), desc="local SfM (dask)", unit="cluster", disable=None)
         try:
-            for future in as_completed(futures):
+            for future in finished:
                 k = futures[future]
+                submit_next()
                 try:
                     models, worker = future.result()
                     yield ClusterResult(k, models, worker)
                 except Exception as exc:  # noqa: BLE001 - a failed cluster is reported, not fatal
-                    log.warning("cluster %s failed on dask: %s", payloads[k].label, exc)
+                    log.warning("cluster %s failed on dask: %s", labels[k], exc)
                     yield ClusterResult(k, [], "", f"{type(exc).__name__}: {exc}")
                 bar.update()
         finally:

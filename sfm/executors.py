@@ -14,7 +14,7 @@ import multiprocessing as mp
 import os
 import socket
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 
 from tqdm import tqdm
@@ -81,18 +81,42 @@ class LocalExecutor:
                 bar.update()
             bar.close()
             return
-        # Largest payloads first, so the pool is not left waiting on one big straggler.
-        order = sorted(range(len(payloads)), key=lambda k: -len(payloads[k].names))
+        # Largest payloads first, so the pool is not left waiting on one big straggler; one
+        # payload queued ahead per worker (each is read and pickled only then: memory).
+        sizes, labels = payload_sizes(payloads), payload_labels(payloads)
+        pending = iter(sorted(range(len(payloads)), key=lambda k: -sizes[k]))
         ctx = mp.get_context("forkserver")
         with ProcessPoolExecutor(max_workers=min(self.workers, len(payloads)), mp_context=ctx) as pool:
-            futures = {pool.submit(map_cluster, payloads[k], options): k for k in order}
-            for future in as_completed(futures):
-                k = futures[future]
-                try:
-                    models, worker = future.result()
-                    yield ClusterResult(k, models, worker)
-                except Exception as exc:  # noqa: BLE001
-                    log.warning("cluster %s failed: %s", payloads[k].label, exc)
-                    yield ClusterResult(k, [], "", f"{type(exc).__name__}: {exc}")
-                bar.update()
+            futures: dict = {}
+
+            def submit_next() -> None:
+                k = next(pending, None)
+                if k is not None:
+                    futures[pool.submit(map_cluster, payloads[k], options)] = k
+
+            for _ in range(2 * self.workers):
+                submit_next()
+            while futures:
+                done, _ = wait(futures, return_when=FIRST_COMPLETED)
+                for future in done:
+                    k = futures.pop(future)
+                    submit_next()
+                    try:
+                        models, worker = future.result()
+                        yield ClusterResult(k, models, worker)
+                    except Exception as exc:  # noqa: BLE001
+                        log.warning("cluster %s failed: %s", labels[k], exc)
+                        yield ClusterResult(k, [], "", f"{type(exc).__name__}: {exc}")
+                    bar.update()
         bar.close()
+
+
+def payload_sizes(payloads: Sequence[MapperInput]) -> list[int]:
+    """Images per payload, without reading a lazy sequence (``sfm.mapping.ClusterPayloads``)."""
+    sizes = getattr(payloads, "sizes", None)
+    return list(sizes) if sizes is not None else [len(p.names) for p in payloads]
+
+
+def payload_labels(payloads: Sequence[MapperInput]) -> list[str]:
+    labels = getattr(payloads, "labels", None)
+    return list(labels) if labels is not None else [p.label for p in payloads]

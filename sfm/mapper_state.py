@@ -23,6 +23,10 @@ from sfm.triangulation import depths, max_triangulation_angles, refine_points, t
 log = logging.getLogger(__name__)
 
 
+# Track rows triangulated at once: the per-row temporaries stay around 100 MB.
+_TRIANGULATION_ROWS = 250_000
+
+
 def _gather(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows of the given tracks (concatenated) and the position of each row's track in ``tracks``."""
     lengths = starts[tracks + 1] - starts[tracks]
@@ -184,8 +188,13 @@ class MapperState:
         reprojects within ``max_reproj_error`` in front of the camera, a point if it keeps two
         rows and a triangulation angle >= ``min_tri_angle``.  Two passes: all rows, then the
         inliers of the first pass.  Returns the number of new valid points."""
-        if len(tracks) == 0:
-            return 0
+        lengths = np.cumsum(self.starts[tracks + 1] - self.starts[tracks])
+        step = _TRIANGULATION_ROWS  # chunks of tracks: bounded temporaries
+        total = int(lengths[-1]) if len(tracks) else 0
+        cuts = np.unique(np.r_[0, np.searchsorted(lengths, np.arange(step, total, step)), len(tracks)])
+        return sum(self._triangulate_chunk(tracks[a:b]) for a, b in zip(cuts[:-1], cuts[1:]))
+
+    def _triangulate_chunk(self, tracks: np.ndarray) -> int:
         rows, owner = _gather(self.starts, tracks)
         keep = self.registered[self.obs_image[rows]]
         rows, owner = rows[keep], owner[keep]

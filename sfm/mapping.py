@@ -9,9 +9,11 @@ Without ``WORK/clusters.json`` every image is in one cluster and the models go t
 
 from __future__ import annotations
 
+import copy
 import logging
 import shutil
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -30,33 +32,62 @@ from sfm.workspace import CLUSTERS, DATABASE, read_json, update_report
 log = logging.getLogger(__name__)
 
 
-def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
-                  min_inliers: int, labels: list[str] | None = None) -> list[MapperInput]:
-    """One :class:`MapperInput` per cluster (``None``: all images) from the database; images
-    are named, everything else is arrays: the payload needs nothing from the caller's disk."""
-    with Database(db_path, readonly=True) as db:
-        images = db.read_images()
-        cams = db.read_cameras()
-        geoms = db.read_two_view_geometries(min_config=2, min_inliers=min_inliers)
-        by_name = {im.name: iid for iid, im in images.items()}
-        groups = [sorted(images)] if clusters is None else [sorted(by_name[n] for n in c) for c in clusters]
-        keypoints = db.read_all_keypoints(sorted({i for g in groups for i in g}))
-    payloads = []
-    for k, ids in enumerate(groups):
+class ClusterPayloads(Sequence[MapperInput]):
+    """One :class:`MapperInput` per cluster (``None``: all images), read from the database
+    when indexed: each holds its cluster's keypoints and verified matches, so building them
+    one at a time keeps memory to the clusters in flight.  Images are named, everything else
+    is arrays: a payload needs nothing from the caller's disk.  ``labels``, ``names`` and
+    ``sizes`` need no read."""
+
+    def __init__(self, db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
+                 min_inliers: int, labels: list[str] | None = None) -> None:
+        self.db_path, self.fixed_intrinsics, self.min_inliers = Path(db_path), fixed_intrinsics, min_inliers
+        with Database(db_path, readonly=True) as db:
+            self.images, self.cams = db.read_images(), db.read_cameras()
+        by_name = {im.name: iid for iid, im in self.images.items()}
+        self.whole = clusters is None
+        self.groups = [sorted(self.images)] if clusters is None else [sorted(by_name[n] for n in c) for c in clusters]
+        self.labels = list(labels) if labels else [f"C{k}" for k in range(len(self.groups))]
+        self.names = [[self.images[i].name for i in ids] for ids in self.groups]
+        self.sizes = [len(ids) for ids in self.groups]
+
+    def __len__(self) -> int:
+        return len(self.groups)
+
+    def subset(self, indices: list[int]) -> ClusterPayloads:
+        out = copy.copy(self)
+        out.groups, out.labels = [self.groups[k] for k in indices], [self.labels[k] for k in indices]
+        out.names, out.sizes = [self.names[k] for k in indices], [self.sizes[k] for k in indices]
+        return out
+
+    def __getitem__(self, k):  # type: ignore[override]
+        if isinstance(k, slice):
+            return [self[j] for j in range(len(self))[k]]
+        ids, images, cams = self.groups[k], self.images, self.cams
+        with Database(self.db_path, readonly=True) as db:
+            geoms = db.read_two_view_geometries(min_config=2, min_inliers=self.min_inliers,
+                                                image_ids=None if self.whole else ids)
+            keypoints = db.read_all_keypoints(ids)
         local = {iid: n for n, iid in enumerate(ids)}
         cameras = {
             c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
-                           cams[c].prior_focal_length, fixed=fixed_intrinsics and cams[c].model == "PINHOLE")
+                           cams[c].prior_focal_length, fixed=self.fixed_intrinsics and cams[c].model == "PINHOLE")
             for c in sorted({images[i].camera_id for i in ids})
         }
         pairs = [(local[a], local[b], g.inlier_matches.astype(np.int64), int(g.config))
                  for (a, b), g in geoms.items() if a in local and b in local]
-        payloads.append(MapperInput(
-            image_ids=list(ids), names=[images[i].name for i in ids], camera_ids=[images[i].camera_id for i in ids],
-            cameras=cameras, keypoints=[keypoints.get(i, np.zeros((0, 2)))[:, :2].astype(np.float64) for i in ids],
-            pairs=pairs, label=labels[k] if labels else f"C{k}",
-        ))
-    return payloads
+        del geoms
+        return MapperInput(
+            image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],
+            cameras=cameras, keypoints=[keypoints.pop(i, np.zeros((0, 2)))[:, :2].astype(np.float64) for i in ids],
+            pairs=pairs, label=self.labels[k],
+        )
+
+
+def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
+                  min_inliers: int, labels: list[str] | None = None) -> list[MapperInput]:
+    """Every :class:`ClusterPayloads` payload at once (small problems, tests)."""
+    return list(ClusterPayloads(db_path, clusters, fixed_intrinsics, min_inliers, labels))
 
 
 def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
@@ -99,8 +130,8 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         clusters = [c["members"] for c in read_json(workspace / CLUSTERS)["clusters"]]
     # One cluster (all images fit): its models are final and go straight to sparse/.
     direct = clusters is None or len(clusters) == 1
-    payloads = load_payloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics,
-                             min_inliers=options.min_num_matches)
+    payloads = ClusterPayloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics,
+                               min_inliers=options.min_num_matches)
     ledger = Ledger(workspace)
     opts, input_fp = options_record(options), fingerprint(database_fingerprint(db_path), clusters)
     done = _finished_clusters(ledger, opts, input_fp, workspace, direct)
@@ -112,22 +143,22 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         ledger.start("map", opts, input_fp, keep={"clusters": {}})
         done = {}
     recorder.stage("map")
-    per_cluster: list[dict] = [{} for _ in payloads]
-    for k, p in enumerate(payloads):
-        if p.label in done:
-            per_cluster[k] = {**done[p.label], "reused": True}
-            for m in range(len(done[p.label]["models"])) if recorder.enabled else ():
-                model = read_model(_folder(workspace, direct, p.label) / str(m))
-                log_model(recorder, f"clusters/{p.label}" + (f"/{m}" if m else ""), model)
-    todo = [k for k, p in enumerate(payloads) if p.label not in done]
+    per_cluster: list[dict] = [{} for _ in payloads.labels]
+    for k, label in enumerate(payloads.labels):
+        if label in done:
+            per_cluster[k] = {**done[label], "reused": True}
+            for m in range(len(done[label]["models"])) if recorder.enabled else ():
+                model = read_model(_folder(workspace, direct, label) / str(m))
+                log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
+    todo = [k for k, label in enumerate(payloads.labels) if label not in done]
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
-    for res in executor.run([payloads[k] for k in todo], options, recorder) if todo else ():
+    for res in executor.run(payloads.subset(todo), options, recorder) if todo else ():
         k = todo[res.index]
-        label = payloads[k].label
+        label = payloads.labels[k]
         written = write_models(res.models, _folder(workspace, direct, label))
-        per_cluster[k] = {"cluster": label, "images": len(payloads[k].names), "worker": res.worker,
+        per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
                           "models": written, "error": res.error}
         if res.error is None:  # a failed cluster is tried again by the next run
             ledger.data["map"]["clusters"][label] = per_cluster[k]
@@ -136,7 +167,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
             log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
     flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
-    num_images = len({n for p in payloads for n in p.names})  # clusters overlap
+    num_images = len({n for names in payloads.names for n in names})  # clusters overlap
     fields = {"images": num_images, "executor": executor.name, "scheduler": getattr(executor, "address", None),
               "clusters": per_cluster, "num_clusters": len(payloads),
               "mapper_options": asdict(options), "warnings": []}  # no stale warning of an earlier run

@@ -16,7 +16,7 @@ from pathlib import Path
 from sfm.errors import NoModelError
 from sfm.incremental import refine_with_poses
 from sfm.mapper_input import MapperOptions
-from sfm.mapping import failed_clusters_warning, load_payloads, write_models
+from sfm.mapping import ClusterPayloads, failed_clusters_warning, write_models
 from sfm.merge import (
     MergeOptions,
     anchor_from_model,
@@ -79,12 +79,14 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         poses, params = merged_poses(models, plan, sims)
         components.append((plan, poses, params))
     t_merge = time.perf_counter() - t0
+    num_local, num_edges = len(models), len(edges)
+    del models, edges  # their Python point objects: ~1.7 KB per local point, not needed any more
 
     recorder.stage("refine")
     finals = []
-    payloads = load_payloads(workspace / DATABASE, [sorted(p) for _, p, _ in components],
-                             fixed_intrinsics=not mapper_options.refine_given_intrinsics,
-                             min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
+    payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) for _, p, _ in components],
+                               fixed_intrinsics=not mapper_options.refine_given_intrinsics,
+                               min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
     for (plan, poses, params), payload in zip(components, payloads):
         final = refine_with_poses(payload, mapper_options, poses, params)
         if len(final.images) >= mapper_options.smallest_model(len(payload.names)):
@@ -94,7 +96,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     for k, final in enumerate(finals):
         log_model(recorder, "world" if k == 0 else f"world/model{k}", final)
     t_ba = time.perf_counter() - t0 - t_merge
-    fields = {"num_models": len(finals), "num_local_models": len(models), "merge_components": len(plans), "models": written}
+    fields = {"num_models": len(finals), "num_local_models": num_local, "merge_components": len(plans), "models": written}
     if written:
         fields.update({k: written[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
     failed = read_json(workspace / REPORT).get("failed_clusters", []) if (workspace / REPORT).exists() else []
@@ -108,8 +110,8 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     if not finals:
         raise NoModelError("merging left no model")
     log.info("merge: %d local models -> %d models (largest %d images), merge %.1f s, final BA %.1f s",
-             len(models), len(finals), len(finals[0].images), t_merge, t_ba)
-    result = MergeResult(len(models), len(edges), len(finals), written, round(t_merge, 3), round(t_ba, 3))
+             num_local, len(finals), len(finals[0].images), t_merge, t_ba)
+    result = MergeResult(num_local, num_edges, len(finals), written, round(t_merge, 3), round(t_ba, 3))
     ledger.finish("merge", fingerprint([m["path"] for m in written]), result=asdict(result))
     return result
 

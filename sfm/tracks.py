@@ -98,14 +98,13 @@ def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int, block_en
     node, gigabytes for a few thousand images."""
     if len(edges_u) == 0:
         return np.zeros(0, dtype=np.int64)
-    nodes, inv = np.unique(np.concatenate([edges_u, edges_v]), return_inverse=True)
-    u, v = inv[: len(edges_u)], inv[len(edges_u):]
-    m = len(nodes)
-    adj = sp.coo_matrix((np.ones(2 * len(u), dtype=np.int32), (np.r_[u, v], np.r_[v, u])), shape=(m, m)).tocsr()
+    u, v = edges_u.astype(np.int32), edges_v.astype(np.int32)  # int32 indices: half the memory
+    adj = sp.csr_matrix((np.ones(2 * len(u), dtype=np.int32), (np.concatenate([u, v]), np.concatenate([v, u]))),
+                        shape=(n, n))
     adj.data[:] = 1  # duplicate matches count once
     # Entries of row r of adj @ adj: at most the summed degrees of r's neighbours.
     work = np.cumsum(adj @ np.diff(adj.indptr).astype(np.int64))
-    cuts = np.unique(np.r_[0, np.searchsorted(work, np.arange(block_entries, work[-1], block_entries)), m])
+    cuts = np.unique(np.r_[0, np.searchsorted(work, np.arange(block_entries, work[-1], block_entries)), n])
     support = np.zeros(len(u), dtype=np.int64)
     edge_order = np.argsort(u, kind="stable")
     edge_bounds = np.searchsorted(u[edge_order], cuts)
@@ -123,10 +122,14 @@ def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int, block_en
 def _consistent_groups(edges_u: np.ndarray, edges_v: np.ndarray, node_image: np.ndarray):
     """Connected components of the given edges: (nodes sorted by component then image,
     component label of each, whether each label holds some image twice)."""
-    nodes, inv = np.unique(np.concatenate([edges_u, edges_v]), return_inverse=True)
-    k = len(edges_u)
-    graph = sp.coo_matrix((np.ones(k, dtype=np.int8), (inv[:k], inv[k:])), shape=(len(nodes),) * 2)
+    n = len(node_image)
+    graph = sp.coo_matrix((np.ones(len(edges_u), dtype=np.int8), (edges_u.astype(np.int32), edges_v.astype(np.int32))),
+                          shape=(n, n))
     _, labels = connected_components(graph, directed=False)
+    involved = np.zeros(n, dtype=bool)
+    involved[edges_u] = involved[edges_v] = True
+    nodes = np.flatnonzero(involved)
+    _, labels = np.unique(labels[nodes], return_inverse=True)  # 0..k-1, by smallest node
     images = node_image[nodes]
     order = np.lexsort((images, labels))
     nodes, labels, images = nodes[order], labels[order], images[order]
@@ -155,17 +158,25 @@ def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_ima
     good = ~g_bad[g_labels[bounds[:-1]]]
     roots = g_nodes[bounds[:-1]]  # the first node of each group is its root
     in_good = np.repeat(good, np.diff(bounds))
-    parent: dict[int, int] = dict(zip(g_nodes[in_good].tolist(), np.repeat(roots, np.diff(bounds))[in_good].tolist()))
+    # Parent links: a node of a consistent group starts under its group's root (``base``);
+    # links the loop changes go in ``parent``.  A dict of every node would cost ~100 B each.
+    base = np.arange(len(node_image))
+    base[g_nodes[in_good]] = np.repeat(roots, np.diff(bounds))[in_good]
+    parent: dict[int, int] = {}
     group_of_root = {int(r): k for k, r in enumerate(roots.tolist()) if good[k]}
     img = node_image.tolist()
     members: dict[int, dict[int, int]] = {}  # root -> {image: node}, materialised when touched
 
+    def up(x: int) -> int:
+        p = parent.get(x)
+        return int(base[x]) if p is None else p
+
     def find(x: int) -> int:
         root = x
-        while parent.get(root, root) != root:
-            root = parent[root]
-        while parent.get(x, x) != root:
-            parent[x], x = root, parent[x]
+        while (p := up(root)) != root:
+            root = p
+        while (p := up(x)) != root:
+            parent[x], x = root, p
         return root
 
     def members_of(root: int, node: int) -> dict[int, int]:
@@ -183,7 +194,7 @@ def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_ima
     loop = ~strong
     loop[strong] = g_bad[node_label[edges_u[strong]]]
     absorbed: set[int] = set()  # roots joined into another root
-    for u, v, sup in zip(edges_u[loop].tolist(), edges_v[loop].tolist(), support[loop].tolist()):
+    for u, v, sup in _chunked(edges_u[loop], edges_v[loop], support[loop]):
         ru, rv = find(u), find(v)
         if ru == rv:
             continue
@@ -203,3 +214,10 @@ def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_ima
     comps += [g_nodes[bounds[k] : bounds[k + 1]] for r, k in group_of_root.items() if r not in members and r not in absorbed]
     comps.sort(key=lambda a: int(a.min()))
     return comps
+
+
+def _chunked(*arrays: np.ndarray, size: int = 100_000):
+    """Rows of the arrays as Python tuples, converted ``size`` at a time (a whole ``tolist``
+    of millions of edges would hold ~30 B per value at once)."""
+    for lo in range(0, len(arrays[0]), size):
+        yield from zip(*(a[lo : lo + size].tolist() for a in arrays))
