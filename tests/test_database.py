@@ -197,6 +197,11 @@ def test_geometry_filters_verified_pairs_and_bulk(db_path: Path) -> None:
         np.testing.assert_array_equal(everything[(1, 3)].inlier_matches[:2], [[1, 0], [2, 1]])
         assert everything[(1, 3)].F is None
         assert everything[(2, 3)].config == TwoViewConfig.DEGENERATE
+        # only the pairs of two of the given images (a cluster's payload)
+        assert sorted(db.read_two_view_geometries(image_ids=[4, 2, 1])) == [(1, 2), (1, 4), (2, 4)]
+        assert sorted(db.read_two_view_geometries(image_ids=[3, 1])) == [(1, 3)]
+        assert sorted(db.read_two_view_geometries(min_config=0, image_ids=[5, 4, 3])) == [(4, 5)]
+        assert db.read_two_view_geometries(image_ids=[]) == {}
 
         # bulk: 20,000 pairs of 30 matches each
         rng = np.random.default_rng(1)
