@@ -17,7 +17,7 @@ from backend.bundle_adjustment import BAOptions, bundle_adjust
 from backend.track_subset import select_tracks
 from sfm.camera_models import project, unproject
 from sfm.mapper_input import MapperInput, MapperOptions
-from sfm.tracks import build_tracks
+from sfm.tracks import build_tracks, work_cuts
 from sfm.triangulation import depths, max_triangulation_angles, refine_points, triangulate_dlt
 
 log = logging.getLogger(__name__)
@@ -188,10 +188,8 @@ class MapperState:
         reprojects within ``max_reproj_error`` in front of the camera, a point if it keeps two
         rows and a triangulation angle >= ``min_tri_angle``.  Two passes: all rows, then the
         inliers of the first pass.  Returns the number of new valid points."""
-        lengths = np.cumsum(self.starts[tracks + 1] - self.starts[tracks])
-        step = _TRIANGULATION_ROWS  # chunks of tracks: bounded temporaries
-        total = int(lengths[-1]) if len(tracks) else 0
-        cuts = np.unique(np.r_[0, np.searchsorted(lengths, np.arange(step, total, step)), len(tracks)])
+        lengths = self.starts[tracks + 1] - self.starts[tracks]
+        cuts = work_cuts(np.cumsum(lengths), _TRIANGULATION_ROWS)  # chunks: bounded temporaries
         return sum(self._triangulate_chunk(tracks[a:b]) for a, b in zip(cuts[:-1], cuts[1:]))
 
     def _triangulate_chunk(self, tracks: np.ndarray) -> int:

@@ -104,7 +104,7 @@ def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int, block_en
     adj.data[:] = 1  # duplicate matches count once
     # Entries of row r of adj @ adj: at most the summed degrees of r's neighbours.
     work = np.cumsum(adj @ np.diff(adj.indptr).astype(np.int64))
-    cuts = np.unique(np.r_[0, np.searchsorted(work, np.arange(block_entries, work[-1], block_entries)), n])
+    cuts = work_cuts(work, block_entries)
     support = np.zeros(len(u), dtype=np.int64)
     edge_order = np.argsort(u, kind="stable")
     edge_bounds = np.searchsorted(u[edge_order], cuts)
@@ -214,6 +214,13 @@ def _conflict_free_components(edges_u: np.ndarray, edges_v: np.ndarray, node_ima
     comps += [g_nodes[bounds[k] : bounds[k + 1]] for r, k in group_of_root.items() if r not in members and r not in absorbed]
     comps.sort(key=lambda a: int(a.min()))
     return comps
+
+
+def work_cuts(cumulative_work: np.ndarray, step: int) -> np.ndarray:
+    """Boundaries ``0 = c_0 < ... < c_k = len`` that cut items with the given cumulative work
+    into consecutive chunks of about ``step`` work each (a chunk holds at least one item)."""
+    total = int(cumulative_work[-1]) if len(cumulative_work) else 0
+    return np.unique(np.r_[0, np.searchsorted(cumulative_work, np.arange(step, total, step)), len(cumulative_work)])
 
 
 def _chunked(*arrays: np.ndarray, size: int = 100_000):
