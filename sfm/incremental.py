@@ -20,6 +20,7 @@ import logging
 import cv2
 import numpy as np
 
+from backend.memory import return_freed_memory
 from sfm.mapper_input import MapperInput, MapperOptions
 from sfm.mapper_output import log_progress, to_reconstruction
 from sfm.mapper_state import MapperState
@@ -194,11 +195,14 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     observations ("in practice, it is enough to perform them once", section 3).  Images
     without a pose stay unregistered."""
     state = MapperState(payload, opts)
+    state.release_pairs()
+    del payload  # the caller passes its only reference: the matches go with it
+    return_freed_memory()
     for c, key in enumerate(state.cam_keys):
         if key in camera_params:
             state.params[c] = np.asarray(camera_params[key], dtype=np.float64)
     state.apply_params()
-    for i, name in enumerate(payload.names):
+    for i, name in enumerate(state.names):
         if name in poses:
             state.R[i], state.t[i] = poses[name]
             state.registered[i] = True

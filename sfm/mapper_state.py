@@ -9,11 +9,13 @@ vectorised operation on these arrays.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
 
-from backend.bundle_adjustment import BAOptions, bundle_adjust
+from backend.bundle_adjustment import BAOptions
+from backend.partitioned_ba import bundle_adjust_partitioned
 from backend.track_subset import select_tracks
 from sfm.camera_models import project, unproject
 from sfm.mapper_input import MapperInput, MapperOptions
@@ -25,6 +27,7 @@ log = logging.getLogger(__name__)
 
 # Track rows triangulated at once: the per-row temporaries stay around 100 MB.
 _TRIANGULATION_ROWS = 250_000
+_ERROR_ROWS = 1_000_000
 
 
 def _gather(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,7 +52,7 @@ class MapperState:
         self.priors = [payload.cameras[c] for c in self.cam_keys]
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self.pair_matches = {
-            (int(i), int(j)): (np.asarray(m, dtype=np.int64), int(cfg))
+            (int(i), int(j)): (np.asarray(m), int(cfg))
             for i, j, m, cfg in payload.pairs
             if len(m) >= opts.min_num_matches
         }
@@ -73,6 +76,12 @@ class MapperState:
         self._reset_model()
         log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
                   len(self.pair_matches), self.num_tracks, len(self.obs_image))
+
+    def release_pairs(self) -> None:
+        """Drop the verified matches once the tracks are built, for a caller that never picks
+        pairs again (the refinement of merged poses): at 4,000 images they are 0.3 GB."""
+        self.pair_matches = {}
+        self.payload = dataclasses.replace(self.payload, pairs=[])
 
     # ------------------------------------------------------------------ bookkeeping
     def _reset_model(self) -> None:
@@ -123,7 +132,11 @@ class MapperState:
         return -np.einsum("nji,nj->ni", self.R[images], self.t[images])
 
     def reprojection_errors(self, rows: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """Pixel error of each row against the point ``xyz`` (per row); inf behind the camera."""
+        """Pixel error of each row against the point ``xyz`` (per row); inf behind the camera.
+        Computed ``_ERROR_ROWS`` rows at a time (a rotation per row is 72 bytes)."""
+        if len(rows) > _ERROR_ROWS:
+            return np.concatenate([self.reprojection_errors(rows[a : a + _ERROR_ROWS], xyz[a : a + _ERROR_ROWS])
+                                   for a in range(0, len(rows), _ERROR_ROWS)])
         img = self.obs_image[rows]
         x_cam = np.einsum("nij,nj->ni", self.R[img], xyz) + self.t[img]
         err = np.full(len(rows), np.inf)
@@ -259,7 +272,7 @@ class MapperState:
         return rows[keep], owner[keep]
 
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
-                       tolerance: float = 1e-5) -> None:
+                       tolerance: float = 1e-5, parts: int = 1) -> None:
         rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
@@ -276,12 +289,13 @@ class MapperState:
         if any(self.priors[c].fixed for c in cams):
             refine = "none"
         n_free = len(order) - len(fixed)
-        result = bundle_adjust(
+        result = bundle_adjust_partitioned(
             [self.priors[c].model for c in cams], [self.params[c] for c in cams], cam_local[self.cam_index[order]],
             self.R[order], self.t[order], self.track_xyz[tracks],
-            img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows],
+            img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
             BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
                       refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance),
+            seed=self.opts.seed,
         )
         self.R[order[:n_free]] = result.rotations[:n_free]
         self.t[order[:n_free]] = result.translations[:n_free]
@@ -313,36 +327,52 @@ class MapperState:
     def global_ba(self, final: bool = False) -> None:
         free = np.flatnonzero(self.registered)
         tracks = np.flatnonzero(self.track_valid)
-        subset = self._ba_subset(tracks, final)
-        self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 100 if final else 25, 1e-5 if final else 1e-3)
-        if len(subset) < len(tracks):
-            self._refine_points(np.setdiff1d(tracks, subset))
+        if final:
+            parts = self._ba_parts(tracks)
+            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, 1e-5, parts=parts)
+            if parts > 1:
+                self._refine_points(tracks)
+        else:
+            subset = self._ba_subset(tracks)
+            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, 1e-3)
+            if len(subset) < len(tracks):
+                self._refine_points(np.setdiff1d(tracks, subset))
         self.filter_observations(tracks)
 
-    def _ba_subset(self, tracks: np.ndarray, final: bool) -> np.ndarray:
-        """The tracks a global BA optimises.  A final BA: all, or those ``select_tracks`` picks
-        when their observations exceed ``ba_max_observations``.  A global BA while the model
-        grows: each image's best track in each grid cell (the subset's first level), as
-        TheiaSfM does: it only has to keep the growing model from drifting, and the final BAs
-        refine everything."""
-        budget = self.opts.ba_max_observations if final else 0
-        if final and budget <= 0:
-            return tracks
+    def _ba_parts(self, tracks: np.ndarray) -> int:
+        """Number of random track parts a final BA is split into so that each holds at most
+        ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
+        budget = self.opts.ba_max_observations
+        num_rows = int(self.obs_inlier[_gather(self.starts, tracks)[0]].sum())
+        parts = -(-num_rows // budget) if budget > 0 else 1
+        if parts > 1:
+            log.info("%s: final BA over %d observations as the consensus of %d BAs over random track parts "
+                     "(ba_max_observations %d); the points are then re-estimated with the cameras held",
+                     self.payload.label, num_rows, parts, budget)
+        return parts
+
+    def _ba_subset(self, tracks: np.ndarray) -> np.ndarray:
+        """The tracks a global BA optimises while the model grows: each image's best track in
+        each grid cell (``select_tracks``' first level), as TheiaSfM does: it only has to keep
+        the growing model from drifting, and the final BAs refine everything."""
         rows, owner = self._inlier_rows(tracks)
-        if len(rows) <= budget:
+        if len(rows) == 0:
             return tracks
         err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
         sizes = np.array([[p.width, p.height] for p in self.priors], dtype=np.float64)[self.cam_index]
         keep = select_tracks(self.obs_image[rows], owner, self.obs_px[rows], sizes, np.minimum(err, 1e6),
-                             len(tracks), budget)
-        if final:
-            log.info("%s: final BA on %d of %d tracks (%d observations > ba_max_observations %d); the other points "
-                     "are re-estimated with the cameras held", self.payload.label, int(keep.sum()), len(tracks),
-                     len(rows), budget)
+                             len(tracks), 0)
         return tracks[keep]
 
     def _refine_points(self, tracks: np.ndarray) -> None:
-        """Re-estimate the given points from their inlier rows with the cameras held."""
+        """Re-estimate the given points from their inlier rows with the cameras held (in
+        chunks of about ``_TRIANGULATION_ROWS`` rows: the per-row temporaries stay bounded)."""
+        lengths = self.starts[tracks + 1] - self.starts[tracks]
+        cuts = work_cuts(np.cumsum(lengths), _TRIANGULATION_ROWS)
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            self._refine_chunk(tracks[a:b])
+
+    def _refine_chunk(self, tracks: np.ndarray) -> None:
         rows, owner = self._inlier_rows(tracks)
         starts = np.searchsorted(owner, np.arange(len(tracks) + 1))
         img = self.obs_image[rows]

@@ -74,7 +74,7 @@ class ClusterPayloads(Sequence[MapperInput]):
                            cams[c].prior_focal_length, fixed=self.fixed_intrinsics and cams[c].model == "PINHOLE")
             for c in sorted({images[i].camera_id for i in ids})
         }
-        pairs = [(local[a], local[b], g.inlier_matches.astype(np.int64), int(g.config))
+        pairs = [(local[a], local[b], g.inlier_matches.astype(np.int32), int(g.config))
                  for (a, b), g in geoms.items() if a in local and b in local]
         del geoms
         return MapperInput(

@@ -13,6 +13,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from backend.memory import return_freed_memory
 from sfm.errors import NoModelError
 from sfm.incremental import refine_with_poses
 from sfm.mapper_input import MapperOptions
@@ -81,15 +82,16 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     t_merge = time.perf_counter() - t0
     num_local, num_edges = len(models), len(edges)
     del models, edges  # their Python point objects: ~1.7 KB per local point, not needed any more
+    return_freed_memory()
 
     recorder.stage("refine")
     finals = []
     payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) for _, p, _ in components],
                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                                min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
-    for (plan, poses, params), payload in zip(components, payloads):
-        final = refine_with_poses(payload, mapper_options, poses, params)
-        if len(final.images) >= mapper_options.smallest_model(len(payload.names)):
+    for k, (plan, poses, params) in enumerate(components):
+        final = refine_with_poses(payloads[k], mapper_options, poses, params)  # read here, held by it alone
+        if len(final.images) >= mapper_options.smallest_model(payloads.sizes[k]):
             finals.append(final)
     finals.sort(key=lambda m: -len(m.images))
     written = write_models(finals, workspace / "sparse")

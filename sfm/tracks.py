@@ -57,19 +57,23 @@ def build_tracks(num_keypoints: np.ndarray, matches: Iterable[tuple[int, int, np
     """
     num_keypoints = np.asarray(num_keypoints, dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(num_keypoints)])
-    rows, cols = [], []
     # Strongest pairs first: the conflict-aware union below trusts earlier matches.
-    for i, j, m in sorted(matches, key=lambda item: -len(item[2])):
-        m = np.asarray(m, dtype=np.int64).reshape(-1, 2)
-        if len(m) == 0:
-            continue
-        rows.append(offsets[i] + m[:, 0])
-        cols.append(offsets[j] + m[:, 1])
+    pairs = sorted(((i, j, np.asarray(m).reshape(-1, 2)) for i, j, m in matches), key=lambda item: -len(item[2]))
     n = int(offsets[-1])
-    if not rows:
+    total = sum(len(m) for _, _, m in pairs)
+    if total == 0:
         empty = np.zeros(0, dtype=np.int64)
         return Tracks(empty, empty, np.zeros(1, dtype=np.int64))
-    r, c = np.concatenate(rows), np.concatenate(cols)
+    # Node indices of the match ends, written in place: int32 while they fit (a list of
+    # per-pair arrays concatenated would hold them twice, 36 M matches at 4,000 images).
+    index_type = np.int32 if n < np.iinfo(np.int32).max else np.int64
+    r, c = np.empty(total, dtype=index_type), np.empty(total, dtype=index_type)
+    at = 0
+    for i, j, m in pairs:
+        r[at : at + len(m)] = offsets[i] + m[:, 0]
+        c[at : at + len(m)] = offsets[j] + m[:, 1]
+        at += len(m)
+    del pairs
     node_image = np.repeat(np.arange(len(num_keypoints)), num_keypoints)
     node_kp = np.arange(n) - offsets[node_image]
     # Components of the matched nodes; those holding no image twice are tracks as they are.
@@ -98,7 +102,7 @@ def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int, block_en
     node, gigabytes for a few thousand images."""
     if len(edges_u) == 0:
         return np.zeros(0, dtype=np.int64)
-    u, v = edges_u.astype(np.int32), edges_v.astype(np.int32)  # int32 indices: half the memory
+    u, v = edges_u.astype(np.int32, copy=False), edges_v.astype(np.int32, copy=False)  # int32: half the memory
     adj = sp.csr_matrix((np.ones(2 * len(u), dtype=np.int32), (np.concatenate([u, v]), np.concatenate([v, u]))),
                         shape=(n, n))
     adj.data[:] = 1  # duplicate matches count once
@@ -123,7 +127,7 @@ def _consistent_groups(edges_u: np.ndarray, edges_v: np.ndarray, node_image: np.
     """Connected components of the given edges: (nodes sorted by component then image,
     component label of each, whether each label holds some image twice)."""
     n = len(node_image)
-    graph = sp.coo_matrix((np.ones(len(edges_u), dtype=np.int8), (edges_u.astype(np.int32), edges_v.astype(np.int32))),
+    graph = sp.coo_matrix((np.ones(len(edges_u), dtype=np.int8), (edges_u.astype(np.int32, copy=False), edges_v.astype(np.int32, copy=False))),
                           shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     involved = np.zeros(n, dtype=bool)
