@@ -1,12 +1,14 @@
-"""Which tracks a large bundle adjustment needs (TheiaSfM's track subset selection).
+"""Which tracks a bundle adjustment needs (TheiaSfM's track subset selection).
 
 A camera's pose is fixed as well by a few hundred well-spread, well-measured points as by all
 of its thousands: past that, more observations cost time and memory in every LM iteration (in
 GTSAM about 1.3 KB each with METIS ordering) for a gain in accuracy that shrinks like one over
-the square root of their number.  So a BA over more than a given number of observations
-optimises the cameras on a subset of the tracks, and every other point is re-estimated
-afterwards with the cameras held (:func:`sfm.triangulation.refine_points`), which is exact for
-it: with its cameras fixed, a point is its own small problem.
+the square root of their number.  So the global BAs while a model grows optimise the cameras
+on a subset of the tracks, and every other point is re-estimated afterwards with the cameras
+held (:func:`sfm.triangulation.refine_points`), which is exact for it: with its cameras fixed,
+a point is its own small problem.  (A final BA over too many observations is split instead,
+``backend.partitioned_ba``: on a nearly flat problem one subset's optimum lies too far from
+the full one.)
 
 The subset: each image is cut into a ``grid`` x ``grid`` grid; within each cell the image ranks
 the tracks it sees, longest first (a long track ties many cameras together) and, among equally

@@ -32,10 +32,12 @@ def test_orbit_with_outliers_is_fully_and_accurately_registered(tmp_path):
     assert not (tmp_path / "sparse" / "1").exists()
 
 
-def test_final_ba_on_a_track_subset_when_over_budget(tmp_path):
-    """``--ba-max-observations`` far below the scene's observations: the final BAs optimise the
-    cameras on the selected tracks and re-estimate the other points with the cameras held;
-    every image stays registered and every point stays near the 0.5 px noise."""
+def test_final_ba_split_into_track_parts_when_over_budget(tmp_path, caplog):
+    """``--ba-max-observations`` far below the scene's observations: each final BA is the
+    consensus of BAs over random parts of the tracks (backend.partitioned_ba), then every
+    point is re-estimated with the cameras held; every image stays registered, accurate, and
+    every point stays near the 0.5 px noise."""
+    caplog.set_level("INFO", logger="sfm.mapper_state")
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=24, observations_per_image=800, outlier_ratio=0.2, seed=0))
     assert main(["map", "--workspace", str(tmp_path), "--ba-max-observations", "4000"]) == 0
     model = read_model(tmp_path / "sparse" / "0")
@@ -43,9 +45,10 @@ def test_final_ba_on_a_track_subset_when_over_budget(tmp_path):
     assert result.num_registered == 24
     assert result.median_rotation_error_deg < 0.1
     observations = sum(len(p.track) for p in model.points3D.values())
-    assert observations > 3 * 4000  # the points outside the subset are kept, not dropped
+    assert observations > 3 * 4000  # every part's points are kept
     errors = np.array([p.error for p in model.points3D.values()])
     assert 0.2 < errors.mean() < 1.0
+    assert "as the consensus of" in caplog.text
 
 
 def test_two_unrelated_scenes_give_two_models(tmp_path):
