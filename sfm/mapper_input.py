@@ -68,9 +68,10 @@ class MapperOptions:
     ba_max_observations: the most observations one GTSAM bundle adjustment holds (GTSAM needs
         about 1.2-1.7 KB each while it optimises: 1.5 GB at the default 1,000,000).  A final
         global BA over more is the consensus of BAs over random disjoint parts of the tracks,
-        each within the budget (``backend.partitioned_ba``: mean of the part estimates, as
-        accurate as one BA where each part still fixes every camera well), then every point
-        is re-estimated with the cameras held.  0: no limit.
+        each within the budget (``backend.partitioned_ba``: the mean of the part estimates),
+        then every point is re-estimated with the cameras held.  On the synthetic aerial block
+        the median rotation error went 0.058 -> 0.041 deg at 1,000 images (two parts) but
+        0.019 -> 0.052 deg at 4,000 (five parts), for 8.4 -> 3.4 GB.  0: no limit.
     min_model_size: smallest number of registered images kept as a model.
     max_num_models: the most models made from one input.
     seed: seed of every random choice (PnP sampling).

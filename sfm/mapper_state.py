@@ -343,7 +343,7 @@ class MapperState:
         """Number of random track parts a final BA is split into so that each holds at most
         ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
         budget = self.opts.ba_max_observations
-        num_rows = int(self.obs_inlier[_gather(self.starts, tracks)[0]].sum())
+        num_rows = len(self._inlier_rows(tracks)[0])
         parts = -(-num_rows // budget) if budget > 0 else 1
         if parts > 1:
             log.info("%s: final BA over %d observations as the consensus of %d BAs over random track parts "

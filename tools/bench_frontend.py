@@ -250,6 +250,16 @@ def pair_differences(ours: FrontendRun, peer: FrontendRun, limit: int = 20) -> l
     return out
 
 
+def prepare(images: Path, out: Path | None, prefix: str) -> tuple[Path, int] | None:
+    """Logging, the image folder check (None: missing, reported), the output folder (a new
+    temporary one by default) and the number of threads each side gets."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
+    if not images.is_dir():
+        print(f"error: image folder not found: {images}", file=sys.stderr)
+        return None
+    return out or Path(tempfile.mkdtemp(prefix=prefix)), len(os.sched_getaffinity(0))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -271,12 +281,10 @@ def main(argv: list[str] | None = None) -> int:
         "--map", action="store_true", help="run pycolmap.incremental_mapping on both databases"
     )
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
-    if not args.images.is_dir():
-        print(f"error: image folder not found: {args.images}", file=sys.stderr)
+    setup = prepare(args.images, args.out, "graphsfm_bench_frontend_")
+    if setup is None:
         return 2
-    out = args.out or Path(tempfile.mkdtemp(prefix="graphsfm_bench_frontend_"))
-    threads = len(os.sched_getaffinity(0))
+    out, threads = setup
 
     ours = run_ours(args.images, out / "graphsfm", args.intrinsics)
     peer = run_colmap(args.images, out / "colmap", args.intrinsics, threads)
