@@ -1,0 +1,179 @@
+"""The bundle adjustment and filtering steps of :class:`sfm.mapper_state.MapperState`.
+
+Local BA around a new image, global BA (on a track subset while the model grows; the final
+ones on every track, split into parts above ``ba_max_observations``), point re-estimation with
+the cameras held, and COLMAP's filtering after BA.  A mixin: the methods work on the state's
+arrays (observation rows grouped by track, poses, intrinsics, points), described in
+``sfm.mapper_state``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from backend.bundle_adjustment import BAOptions
+from backend.partitioned_ba import bundle_adjust_partitioned
+from backend.track_subset import select_tracks
+from sfm.tracks import work_cuts
+from sfm.triangulation import max_triangulation_angles, refine_points
+
+log = logging.getLogger("sfm.mapper_state")  # one logger for the mapper's messages
+
+# Track rows triangulated at once: the per-row temporaries stay around 100 MB.
+_TRIANGULATION_ROWS = 250_000
+
+
+def _gather(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the given tracks (concatenated) and the position of each row's track in ``tracks``."""
+    lengths = starts[tracks + 1] - starts[tracks]
+    owner = np.repeat(np.arange(len(tracks)), lengths)
+    first = np.repeat(starts[tracks], lengths)
+    offset = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return first + offset, owner
+
+
+class BundleAdjustmentSteps:
+    """BA, point refinement and filtering over a :class:`sfm.mapper_state.MapperState`."""
+
+    def _inlier_rows(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_gather`` restricted to the inlier rows in registered images."""
+        rows, owner = _gather(self.starts, tracks)
+        keep = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
+        return rows[keep], owner[keep]
+
+    def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
+                       tolerance: float = 1e-5, parts: int = 1) -> None:
+        rows, _ = self._inlier_rows(tracks)
+        if len(rows) == 0:
+            return
+        images = np.unique(self.obs_image[rows])
+        fixed = np.setdiff1d(images, free)
+        order = np.concatenate([np.intersect1d(free, images), fixed])
+        img_local = np.full(len(self.names), -1)
+        img_local[order] = np.arange(len(order))
+        point_local = np.full(self.num_tracks, -1)
+        point_local[tracks] = np.arange(len(tracks))
+        cams = np.unique(self.cam_index[order])
+        cam_local = np.full(len(self.priors), -1)
+        cam_local[cams] = np.arange(len(cams))
+        if any(self.priors[c].fixed for c in cams):
+            refine = "none"
+        n_free = len(order) - len(fixed)
+        result = bundle_adjust_partitioned(
+            [self.priors[c].model for c in cams], [self.params[c] for c in cams], cam_local[self.cam_index[order]],
+            self.R[order], self.t[order], self.track_xyz[tracks],
+            img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
+            BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
+                      refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance),
+            seed=self.opts.seed,
+        )
+        self.R[order[:n_free]] = result.rotations[:n_free]
+        self.t[order[:n_free]] = result.translations[:n_free]
+        self.track_xyz[tracks] = result.points
+        self.last_ba_rms = float(result.final_rms)
+        if refine != "none":
+            for c, p in zip(cams, result.camera_params):
+                self.params[c] = np.asarray(p, dtype=np.float64)
+            self._update_normalised()
+
+    def local_ba(self, i: int) -> None:
+        """BA around the new image ``i``: the points it sees, with ``i`` and the registered
+        images sharing most of those points free and every other image that sees them fixed
+        (OpenSfM's local bundle; the points of the neighbours alone were already adjusted)."""
+        rows = self.image_rows[i]
+        tracks = np.unique(self.obs_track[rows[self.obs_inlier[rows]]])
+        tracks = tracks[self.track_valid[tracks]]
+        trows, _ = _gather(self.starts, tracks)
+        trows = trows[self.obs_inlier[trows]]
+        neigh = np.bincount(self.obs_image[trows], minlength=len(self.names))
+        neigh[i] = 0
+        best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
+        free = np.concatenate([[i], best[neigh[best] > 0]])
+        # Intermediate BAs stop at a 0.1% cost decrease: later BAs refine again, and the final
+        # global BAs run to GTSAM's default tolerance.
+        self._bundle_adjust(free, tracks, "none", 25, tolerance=1e-3)
+        self.filter_observations(tracks)
+
+    def global_ba(self, final: bool = False) -> None:
+        free = np.flatnonzero(self.registered)
+        tracks = np.flatnonzero(self.track_valid)
+        if final:
+            parts = self._ba_parts(tracks)
+            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, 1e-5, parts=parts)
+            if parts > 1:
+                self._refine_points(tracks)
+        else:
+            subset = self._ba_subset(tracks)
+            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, 1e-3)
+            if len(subset) < len(tracks):
+                self._refine_points(np.setdiff1d(tracks, subset))
+        self.filter_observations(tracks)
+
+    def _ba_parts(self, tracks: np.ndarray) -> int:
+        """Number of random track parts a final BA is split into so that each holds at most
+        ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
+        budget = self.opts.ba_max_observations
+        num_rows = len(self._inlier_rows(tracks)[0])
+        parts = -(-num_rows // budget) if budget > 0 else 1
+        if parts > 1:
+            log.info("%s: final BA over %d observations as the consensus of %d BAs over random track parts "
+                     "(ba_max_observations %d); the points are then re-estimated with the cameras held",
+                     self.payload.label, num_rows, parts, budget)
+        return parts
+
+    def _ba_subset(self, tracks: np.ndarray) -> np.ndarray:
+        """The tracks a global BA optimises while the model grows: each image's best track in
+        each grid cell (``select_tracks``' first level), as TheiaSfM does: it only has to keep
+        the growing model from drifting, and the final BAs refine everything."""
+        rows, owner = self._inlier_rows(tracks)
+        if len(rows) == 0:
+            return tracks
+        err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
+        sizes = np.array([[p.width, p.height] for p in self.priors], dtype=np.float64)[self.cam_index]
+        keep = select_tracks(self.obs_image[rows], owner, self.obs_px[rows], sizes, np.minimum(err, 1e6),
+                             len(tracks), 0)
+        return tracks[keep]
+
+    def _refine_points(self, tracks: np.ndarray) -> None:
+        """Re-estimate the given points from their inlier rows with the cameras held (in
+        chunks of about ``_TRIANGULATION_ROWS`` rows: the per-row temporaries stay bounded)."""
+        lengths = self.starts[tracks + 1] - self.starts[tracks]
+        cuts = work_cuts(np.cumsum(lengths), _TRIANGULATION_ROWS)
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            self._refine_chunk(tracks[a:b])
+
+    def _refine_chunk(self, tracks: np.ndarray) -> None:
+        rows, owner = self._inlier_rows(tracks)
+        starts = np.searchsorted(owner, np.arange(len(tracks) + 1))
+        img = self.obs_image[rows]
+        focal = np.array([self._camera_focal(c) for c in range(len(self.priors))])[self.cam_index[img]]
+        huber = self.opts.loss_scale / focal if self.opts.loss != "none" else np.full(len(rows), 1e6)
+        self.track_xyz[tracks] = refine_points(self.R[img], self.t[img], self.obs_norm[rows], starts,
+                                               self.track_xyz[tracks], huber)
+
+    def filter_observations(self, tracks: np.ndarray) -> None:
+        """Drop rows above ``max_reproj_error`` and points left with < 2 rows or too small an
+        angle (COLMAP's filtering after BA)."""
+        rows, owner = _gather(self.starts, tracks)
+        rows_mask = self.obs_inlier[rows]
+        rows, owner = rows[rows_mask], owner[rows_mask]
+        err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
+        bad = err >= self.opts.max_reproj_error
+        self.obs_inlier[rows[bad]] = False
+        rows, owner = rows[~bad], owner[~bad]
+        counts = np.bincount(owner, minlength=len(tracks))
+        order = np.argsort(owner, kind="stable")
+        rows_sorted = rows[order]
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        img = self.obs_image[rows_sorted]
+        angles = np.zeros(len(tracks))
+        has = counts >= 2
+        if has.any():
+            angles = max_triangulation_angles(self.centers(img), self.track_xyz[tracks], starts)
+        dead = (counts < 2) | (angles < self.opts.min_tri_angle)
+        dead_tracks = tracks[dead]
+        self.track_valid[dead_tracks] = False
+        drows, _ = _gather(self.starts, dead_tracks)
+        self.obs_inlier[drows] = False
