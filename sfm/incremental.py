@@ -87,7 +87,9 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
     triangulation angle reaches ``init_min_tri_angle`` wins; if none does, the angle is halved,
     up to three times (COLMAP relaxes twice; a camera moving forward along a street sees median
     angles of 2-3 degrees even between frames a few steps apart, and BA widens the baseline as
-    the model grows)."""
+    the model grows).  Candidates come in order of inliers and a score never exceeds a pair's
+    inliers, so the search stops once a pair passing the first angle threshold scores more than
+    the next candidate has inliers: the same winner, fewer two-view reconstructions."""
     opts = state.opts
     cands = [
         (len(m), i, j, m)
@@ -100,7 +102,10 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
     if sum(c[0] >= opts.init_min_num_inliers for c in cands) >= 1:
         cands = [c for c in cands if c[0] >= opts.init_min_num_inliers]
     evaluated = []
+    best_wide = -1  # best score so far among pairs that pass the first angle threshold
     for n_inl, i, j, m in cands[: opts.init_max_pairs]:
+        if best_wide > n_inl:
+            break  # a score counts inliers of these matches: no later pair can beat it
         rel = _relative_pose(state, i, j, m, opts.seed)
         if rel is None:
             continue
@@ -109,6 +114,8 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
         log.debug("init candidate %s-%s: %d inliers, median angle %.1f deg, %d points", state.names[i], state.names[j], n_inl, angle, score)
         if score >= opts.abs_pose_min_num_inliers:
             evaluated.append((score, angle, i, j, R, t))
+            if angle >= opts.init_min_tri_angle:
+                best_wide = max(best_wide, score)
     for min_angle in (opts.init_min_tri_angle, opts.init_min_tri_angle / 2, opts.init_min_tri_angle / 4,
                       opts.init_min_tri_angle / 8):
         ok = [e for e in evaluated if e[1] >= min_angle]
@@ -172,9 +179,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
             else:
                 state.local_ba(state.last_registered)
             log_progress(state, recorder)
-        state.global_ba(final=True)
-        state.retriangulate()
-        state.global_ba(final=True)
+        _final_refinement(state)
         model = to_reconstruction(state)
         n = state.num_registered
         state.close_model()
@@ -185,6 +190,25 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
             break
     models.sort(key=lambda m: -len(m.images))
     return models
+
+
+# A second final BA runs only when re-triangulation after the first changed more than this
+# share of the observations (COLMAP's ba_global_max_refinement_change, 0.0005): below it the
+# second BA moves nothing that matters and costs as much as the first.
+MAX_REFINEMENT_CHANGE = 0.0005
+
+
+def _final_refinement(state: MapperState) -> None:
+    """Final global BA, re-triangulation, and a second final BA if that changed enough."""
+    state.global_ba(final=True)
+    before = int(state.obs_inlier.sum())
+    state.retriangulate()
+    changed = int(state.obs_inlier.sum()) - before
+    if changed > MAX_REFINEMENT_CHANGE * max(before, 1):
+        state.global_ba(final=True)
+    else:
+        log.debug("%s: re-triangulation changed %d of %d observations: no second final BA",
+                  state.payload.label, changed, before)
 
 
 def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],

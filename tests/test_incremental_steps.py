@@ -1,0 +1,118 @@
+"""Steps of the incremental mapper: the initial-pair search's early stop and the rule for a
+second final BA."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+
+import sfm.incremental as incremental
+from sfm.incremental import (
+    MAX_REFINEMENT_CHANGE,
+    _final_refinement,
+    _try_initial_pair,
+    two_view_score,
+)
+from sfm.mapper_input import MapperOptions
+from sfm.mapper_state import MapperState
+from sfm.mapping import load_payloads
+from sfm.synthetic import SynthOptions, run_synth
+
+
+def _full_search_winner(state: MapperState) -> tuple[int, int, int, list]:
+    """The initial pair the documented rule picks when every candidate is reconstructed, its
+    score, and the candidates (inliers, i, j) in search order."""
+    opts = state.opts
+    cands = sorted(((len(m), i, j, m) for (i, j), (m, config) in state.pair_matches.items()
+                    if config not in incremental.PLANAR_CONFIGS
+                    and len(m) >= max(opts.abs_pose_min_num_inliers, opts.min_num_matches)),
+                   key=lambda c: (-c[0], c[1], c[2]))  # fmt: skip
+    if any(c[0] >= opts.init_min_num_inliers for c in cands):
+        cands = [c for c in cands if c[0] >= opts.init_min_num_inliers]
+    scored = []
+    for _, i, j, m in cands[: opts.init_max_pairs]:
+        rel = incremental._relative_pose(state, i, j, m, opts.seed)
+        if rel is not None:
+            score, angle = two_view_score(state, i, j, rel[0], rel[1], m[rel[2]])
+            if score >= opts.abs_pose_min_num_inliers and angle >= opts.init_min_tri_angle:
+                scored.append((score, -i, -j))
+    assert scored, "the scene must have a pair passing the first angle threshold"
+    score, i, j = max(scored)
+    return -i, -j, score, [c[:3] for c in cands[: opts.init_max_pairs]]
+
+
+def test_initial_pair_search_stops_early_with_the_full_search_winner(tmp_path, monkeypatch):
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=4))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    opts = MapperOptions()
+    *expected, score, cands = _full_search_winner(MapperState(payload, opts))
+
+    calls = []
+    original = incremental._relative_pose
+
+    def counting(state, i, j, matches, seed):
+        calls.append((i, j))
+        return original(state, i, j, matches, seed)
+
+    monkeypatch.setattr(incremental, "_relative_pose", counting)
+    state = MapperState(payload, opts)
+    assert _try_initial_pair(state, set())
+    assert tuple(np.flatnonzero(state.registered)) == tuple(sorted(expected))
+    # every pair that could still have beaten the winner was tried, and no other
+    assert calls == [(i, j) for n, i, j in cands if n >= score]
+    assert len(calls) < len(cands)
+
+
+class _FakeState:
+    """What ``_final_refinement`` touches: counts final BAs; re-triangulation re-admits
+    ``gain`` observations."""
+
+    def __init__(self, num_observations: int, gain: int) -> None:
+        self.obs_inlier = np.zeros(num_observations + gain + 10, bool)
+        self.obs_inlier[:num_observations] = True
+        self.gain, self.final_bas = gain, 0
+        self.payload = types.SimpleNamespace(label="C0")
+
+    def global_ba(self, final: bool = False) -> None:
+        assert final
+        self.final_bas += 1
+
+    def retriangulate(self) -> int:
+        start = int(self.obs_inlier.sum())
+        self.obs_inlier[start : start + self.gain] = True
+        return self.gain
+
+
+def test_second_final_ba_only_when_retriangulation_changed_enough():
+    n = 100_000
+    limit = int(MAX_REFINEMENT_CHANGE * n)  # 50 observations
+    for gain, expected in ((0, 1), (3, 1), (limit, 1), (limit + 1, 2), (n // 100, 2)):
+        state = _FakeState(n, gain)
+        _final_refinement(state)
+        assert state.final_bas == expected, (gain, state.final_bas)
+
+
+def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
+    """The search reconstructs candidates in order of inliers until the best score at the
+    first angle threshold exceeds the next candidate's inliers; the best such pair wins."""
+    table = {  # (i, j): (inliers, score, median angle in degrees)
+        (0, 1): (500, 480, 5.0),  # most inliers, too narrow
+        (0, 2): (400, 300, 20.0),
+        (1, 2): (350, 340, 20.0),  # the winner: must be tried although (0, 2) passed already
+        (1, 3): (250, 250, 30.0),  # cannot beat 340: never reconstructed
+    }
+    opts = MapperOptions()
+    eye, t = np.eye(3), np.array([1.0, 0.0, 0.0])
+    state = types.SimpleNamespace(
+        opts=opts, registered=np.zeros(4, bool), used=np.zeros(4, bool), names=["a", "b", "c", "d"],
+        pair_matches={p: (np.zeros((n, 2), np.int64), 2) for p, (n, _, _) in table.items()},
+        start_model=lambda i, j, R, t: started.append((i, j)),
+    )  # fmt: skip
+    calls, started = [], []
+    monkeypatch.setattr(incremental, "_relative_pose",
+                        lambda st, i, j, m, seed: calls.append((i, j)) or (eye, t, np.ones(len(m), bool)))
+    monkeypatch.setattr(incremental, "two_view_score", lambda st, i, j, R, tt, m: table[(i, j)][1:])
+    assert _try_initial_pair(state, set())
+    assert started == [(1, 2)]
+    assert calls == [(0, 1), (0, 2), (1, 2)]
