@@ -27,7 +27,6 @@ import scipy.sparse as sp
 from scipy.linalg import eigh
 from scipy.sparse.csgraph import connected_components as _cc_labels
 from scipy.sparse.linalg import eigsh
-from sklearn.cluster import SpectralClustering
 
 from graph.image_graph import ImageGraph, connected_components, edge_arrays
 
@@ -157,6 +156,10 @@ def _spectral_kway(adj: sp.csr_matrix, k: int, seed: int) -> np.ndarray:
     """K-way normalized spectral clustering of a connected graph (Alg. 1, line 2)."""
     if k <= 1:
         return np.zeros(adj.shape[0], dtype=np.int64)
+    # imported here: scikit-learn takes a second or two to import, and a scene that fits in
+    # one cluster never gets this far
+    from sklearn.cluster import SpectralClustering
+
     model = SpectralClustering(
         n_clusters=k,
         affinity="precomputed",
