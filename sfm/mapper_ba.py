@@ -24,6 +24,16 @@ log = logging.getLogger("sfm.mapper_state")  # one logger for the mapper's messa
 # Track rows triangulated at once: the per-row temporaries stay around 100 MB.
 _TRIANGULATION_ROWS = 250_000
 
+# Levenberg-Marquardt stops when an iteration lowers the cost by less than this share: 1e-3
+# for the BAs of a growing model (later BAs refine again), 1e-4 for the final ones. A final
+# BA's cost falls by less than 1e-4 per iteration within 3-4 iterations and then creeps on
+# for as many again at GTSAM's default 1e-5: measured with both, lund_door, temple_ring,
+# synthetic orbit 100 and the 500-image aerial merge gave the same poses to 4 digits of
+# AUC and of the median rotation error, in 0-20% less mapping time. COLMAP stops its global
+# BA on a gradient tolerance instead (Ceres, 1 in cost units, 50 iterations).
+_GROWING_TOLERANCE = 1e-3
+_FINAL_TOLERANCE = 1e-4
+
 
 def _gather(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows of the given tracks (concatenated) and the position of each row's track in ``tracks``."""
@@ -91,9 +101,7 @@ class BundleAdjustmentSteps:
         neigh[i] = 0
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
-        # Intermediate BAs stop at a 0.1% cost decrease: later BAs refine again, and the final
-        # global BAs run to GTSAM's default tolerance.
-        self._bundle_adjust(free, tracks, "none", 25, tolerance=1e-3)
+        self._bundle_adjust(free, tracks, "none", 25, tolerance=_GROWING_TOLERANCE)
         self.filter_observations(tracks)
 
     def global_ba(self, final: bool = False) -> None:
@@ -101,12 +109,12 @@ class BundleAdjustmentSteps:
         tracks = np.flatnonzero(self.track_valid)
         if final:
             parts = self._ba_parts(tracks)
-            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, 1e-5, parts=parts)
+            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, _FINAL_TOLERANCE, parts=parts)
             if parts > 1:
                 self._refine_points(tracks)
         else:
             subset = self._ba_subset(tracks)
-            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, 1e-3)
+            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, _GROWING_TOLERANCE)
             if len(subset) < len(tracks):
                 self._refine_points(np.setdiff1d(tracks, subset))
         self.filter_observations(tracks)

@@ -116,3 +116,4 @@ def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
     assert _try_initial_pair(state, set())
     assert started == [(1, 2)]
     assert calls == [(0, 1), (0, 2), (1, 2)]
+
