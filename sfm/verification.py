@@ -101,12 +101,13 @@ def _skew(t: np.ndarray) -> np.ndarray:
 
 def sampson_distances(M: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Signed Sampson distances of points (N, 2) to the epipolar model ``x2^T M x1 = 0``."""
-    h1 = np.c_[x1, np.ones(len(x1))]
-    h2 = np.c_[x2, np.ones(len(x2))]
-    m_x1 = h1 @ M.T
-    mt_x2 = h2 @ M
+    # M [x1; 1] and M^T [x2; 1] without building homogeneous copies (called once per
+    # residual evaluation of the pose refinement)
+    m_x1 = x1 @ M[:, :2].T + M[:, 2]
+    mt_x2 = x2 @ M[:2, :] + M[2, :]
     den = m_x1[:, 0] ** 2 + m_x1[:, 1] ** 2 + mt_x2[:, 0] ** 2 + mt_x2[:, 1] ** 2
-    return np.sum(h2 * m_x1, axis=1) / np.sqrt(np.maximum(den, 1e-300))
+    num = x2[:, 0] * m_x1[:, 0] + x2[:, 1] * m_x1[:, 1] + m_x1[:, 2]
+    return num / np.sqrt(np.maximum(den, 1e-300))
 
 
 def _transfer_errors(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
