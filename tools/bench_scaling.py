@@ -89,7 +89,7 @@ def one_run(out: Path, n: int, method: str) -> None:
         s_max = ClusterOptions().max_cluster_size
         model_dir, seconds, _ = run_graphsfm(data / "database.db", work, s_max, int(method.split("-")[1]))
     else:
-        model_dir, seconds = run_colmap(data / "database.db", work, method.split("-")[1])
+        model_dir, seconds = run_colmap(data / "database.db", work, method.split("-")[1], work / "progress.txt")
     r = row(method, model_dir if model_dir is not None and model_dir.exists() else None, seconds,
             read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
     result = {"images": n, **{k: r[k] for k in ("method", "time_s", "registered", "points", "med_rot_deg", "auc@1")
