@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_scaling import fit_exponent, report, run_child, tree_rss
+from bench_scaling import fit_exponent, main, report, run_child, tree_rss
 
 
 def test_fit_exponent_recovers_a_power_law_from_500_images_up():
@@ -50,3 +50,22 @@ def test_report_table_ratio_and_skipped_peers(tmp_path):
     assert "| 500 | graphsfm-1 | not run |" in text
     assert "- graphsfm-2: 1.00" in text and "- colmap-global: too few sizes" in text
     assert np.isfinite(fit_exponent([r for (n, m), r in results.items() if m == "graphsfm-2"]))
+
+
+def test_report_says_how_far_an_unfinished_run_got(tmp_path):
+    log = tmp_path / "runs" / "2000" / "colmap-incremental" / "progress.txt"
+    log.parent.mkdir(parents=True)
+    log.write_text("80.0 102\n3405.1 1156\n")  # "seconds registered", as run_colmap appends
+    text = report(tmp_path, [2000], {}, skip_peers_above=2000)
+    assert "| 2000 | colmap-incremental | > 3405 (stopped unfinished: 1156/2000 registered by then) |" in text
+    assert "| 2000 | colmap-global | not run |" in text  # no progress log: not run
+
+
+def test_report_only_runs_nothing_and_reads_the_cache(tmp_path):
+    cache = tmp_path / "runs" / "500" / "graphsfm-2.json"
+    cache.parent.mkdir(parents=True)
+    cache.write_text('{"images": 500, "method": "graphsfm-2", "time_s": 50.0, "registered": 500}')
+    assert main(["--out", str(tmp_path), "--sizes", "500", "1000", "--methods", "graphsfm-2", "--report-only"]) == 0
+    text = (tmp_path / "scaling.md").read_text()
+    assert "| 500 | graphsfm-2 | 50.0 |" in text and "| 1000 | graphsfm-2 | not run |" in text
+    assert not (tmp_path / "data").exists()  # no scene was generated, nothing was mapped

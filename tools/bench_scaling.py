@@ -10,7 +10,8 @@ with default options).  Each run's result is cached in ``DIR/runs/<n>/<method>.j
 interrupted benchmark resumes where it stopped (``--force`` reruns).  Peak memory is the
 largest summed RSS of the run's process tree, sampled every 0.2 s.  Writes ``DIR/scaling.md``
 (the table, the time ratio to COLMAP's incremental mapper, and the exponent b of a least-squares
-fit t = a n^b over 500..4000 images) and ``DIR/scaling.png`` (log-log).  Peers are skipped above
+fit t = a n^b over 500..4000 images) and ``DIR/scaling.png`` (log-log); ``--report-only`` writes
+them from the cached results alone (say, after runs of different sizes or methods).  Peers are skipped above
 ``--skip-peers-above`` images (the table says so).  Run it on an otherwise idle machine.
 """
 
@@ -108,6 +109,15 @@ def fit_exponent(rows: list[dict], lo: int = 500) -> float | None:
     return float(np.polyfit(n, t, 1)[0])
 
 
+def unfinished(out: Path, n: int, method: str) -> str:
+    """"not run", or how far a run without a result got by its progress log."""
+    try:
+        seconds, count = (out / "runs" / str(n) / method / "progress.txt").read_text().split()[-2:]
+    except (OSError, ValueError):
+        return "not run"
+    return f"> {float(seconds):.0f} (stopped unfinished: {count}/{n} registered by then)"
+
+
 def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | None = None) -> str:
     head = ["images", "method", "time_s", "peak_rss_gb", "registered", "points", "med_rot_deg", "auc@1",
             "time / colmap-incremental"]
@@ -121,7 +131,7 @@ def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | N
             r = results.get((n, m))
             if r is None:
                 skipped = m in PEERS and skip_peers_above is not None and n > skip_peers_above
-                why = f"skipped (peers above {skip_peers_above} images)" if skipped else "not run"
+                why = f"skipped (peers above {skip_peers_above} images)" if skipped else unfinished(out, n, m)
                 lines.append(f"| {n} | {m} | {why} | | | | | | |")
                 continue
             ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
@@ -163,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--skip-peers-above", type=int, default=2000, help="no pycolmap run above this size")
     parser.add_argument("--force", action="store_true", help="rerun cached results")
+    parser.add_argument("--report-only", action="store_true",
+                        help="run nothing: the table and plot from the cached results of --sizes and --methods")
     parser.add_argument("--run", nargs=2, metavar=("N", "METHOD"), help=argparse.SUPPRESS)  # the child
     args = parser.parse_args(argv)
     out = args.out.resolve()
@@ -172,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {}
     for n in args.sizes:
         data = out / "data" / str(n)
-        if not (data / "database.db").exists():
+        if not (data / "database.db").exists() and not args.report_only:
             from sfm.synthetic import SynthOptions, run_synth
 
             shutil.rmtree(data, ignore_errors=True)
@@ -183,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
             cache = out / "runs" / str(n) / f"{m}.json"
             if cache.exists() and not args.force:
                 results[(n, m)] = json.loads(cache.read_text())
+                continue
+            if args.report_only:
                 continue
             print(f"{n} images, {m} ...", flush=True)
             code, seconds, peak = run_child([sys.executable, __file__, "--out", str(out), "--run", str(n), m])
