@@ -34,7 +34,13 @@ under 1%), and it is not a small-sample bias: subtracting the bias estimated fro
 parts (the subsampled-average correction) made the first final BA of the same merge worse,
 0.033 deg against 0.028 (there the plain mean had landed next to the single BA, 0.028 deg).
 On the 4,000-image block, five parts gave 0.052 deg where one BA over all 4.8 M observations
-gave 0.019 deg (and 8.4 GB instead of 3.4 GB peak).
+gave 0.019 deg (and 8.4 GB instead of 3.4 GB peak).  Tried and dropped: intrinsics from three
+spatial blocks of cameras (each camera with all its points), then the random parts with those
+intrinsics held.  On the second final BA the blocks (bands along x) agreed (k1 -6.4e-5,
+-2.9e-5, -5.2e-5); on the first (bands along the centres' first principal axis), started from
+the merged poses at 0.18 deg, they agreed on k1 near -3.4e-4, and the
+parts' mean with that held stayed at 0.18 deg: a block's self-calibration depends on where it
+starts, which the one BA over everything does not show.
 
 The points returned are each from its own part (consistent with the averaged cameras to the
 parts' small spread); the caller re-estimates them with the averaged cameras held.
