@@ -29,8 +29,8 @@ parts' k1 scatter (standard deviation 2.1e-4) is about ten times the single BA's
 the true k1 = 0 (2.0e-5 here, 2.8e-5 on the first final BA), where a third of the data would
 explain sqrt 3.  The single BA's estimate along that direction comes from the parts' joint
 information (cameras held by all points at once pin the intrinsics), which a mean of their
-estimates does not carry.  The parts are converged (a relative tolerance of 1e-7 moves a part's k1 by
-under 1%), and it is not a small-sample bias: subtracting the bias estimated from half-size
+estimates does not carry.  The parts are converged (a relative tolerance of 1e-7 moves a
+part's k1 by under 1%), and it is not a small-sample bias: subtracting the bias estimated from half-size
 parts (the subsampled-average correction) made the first final BA of the same merge worse,
 0.033 deg against 0.028 (there the plain mean had landed next to the single BA, 0.028 deg).
 On the 4,000-image block, five parts gave 0.052 deg where one BA over all 4.8 M observations
@@ -38,9 +38,9 @@ gave 0.019 deg (and 8.4 GB instead of 3.4 GB peak).  Tried and dropped: intrinsi
 spatial blocks of cameras (each camera with all its points), then the random parts with those
 intrinsics held.  On the second final BA the blocks (bands along x) agreed (k1 -6.4e-5,
 -2.9e-5, -5.2e-5); on the first (bands along the centres' first principal axis), started from
-the merged poses at 0.18 deg, they agreed on k1 near -3.4e-4, and the
-parts' mean with that held stayed at 0.18 deg: a block's self-calibration depends on where it
-starts, which the one BA over everything does not show.
+the merged poses at 0.18 deg, they agreed on k1 near -3.4e-4, and the parts' mean with that
+held stayed at 0.18 deg: a block's self-calibration depends on where it starts, which the one
+BA over everything does not show.
 
 The points returned are each from its own part (consistent with the averaged cameras to the
 parts' small spread); the caller re-estimates them with the averaged cameras held.
@@ -109,9 +109,10 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
         iterations += res.iterations
         initial_sq += res.initial_rms**2 * res.num_observations
         success, converged = success and res.success, converged and res.converged
-        logger.debug("BA part %d/%d: %d observations, RMS %.4f px, %d iterations, intrinsics %s", k + 1,
-                     num_parts, int(mask.sum()), res.final_rms, res.iterations,
-                     "; ".join(" ".join(f"{v:.6g}" for v in p) for p in res.camera_params))
+        if logger.isEnabledFor(logging.DEBUG):
+            logger.debug("BA part %d/%d: %d observations, RMS %.4f px, %d iterations, intrinsics %s", k + 1,
+                         num_parts, int(mask.sum()), res.final_rms, res.iterations,
+                         "; ".join(" ".join(f"{v:.6g}" for v in p) for p in res.camera_params))
         del res
         return_freed_memory()  # GTSAM's freed graph back to the system before the next part
     rot_out, trans_out = rotations.copy(), translations.copy()

@@ -13,6 +13,7 @@ Prints a Markdown table.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import shutil
 import sys
@@ -59,15 +60,17 @@ def run_colmap(db: Path, out: Path, kind: str, progress: Path | None = None) -> 
     shutil.copy(db, out / "database.db")
     t0 = time.perf_counter()
     if kind == "incremental":
-        callback = None
-        if progress is not None:
-            log, count = progress.open("w", buffering=1), [2]  # the initial pair registers two
+        with contextlib.ExitStack() as stack:
+            callback = None
+            if progress is not None:
+                log = stack.enter_context(progress.open("w", buffering=1))
+                count = [2]  # the initial pair registers two
 
-            def callback() -> None:
-                count[0] += 1
-                log.write(f"{time.perf_counter() - t0:.1f} {count[0]}\n")
-        models = pycolmap.incremental_mapping(str(out / "database.db"), str(out / "images"), str(out / "sparse"),
-                                              next_image_callback=callback)
+                def callback() -> None:
+                    count[0] += 1
+                    log.write(f"{time.perf_counter() - t0:.1f} {count[0]}\n")
+            models = pycolmap.incremental_mapping(str(out / "database.db"), str(out / "images"),
+                                                  str(out / "sparse"), next_image_callback=callback)
     else:
         models = pycolmap.global_mapping(str(out / "database.db"), str(out / "images"), str(out / "sparse"))
     elapsed = time.perf_counter() - t0
