@@ -16,6 +16,10 @@ For the raw matches of a pair:
    pair is PLANAR_OR_PANORAMIC (6): still verified, with the E/F inliers and pose.
 4. Fewer than ``min_num_inliers`` matches or inliers, or no model: DEGENERATE (1), no inliers, so
    a resumed run knows the pair was tried.
+5. RANSAC iterations: at most ``max_iterations``, and no more than needed to draw, with
+   ``confidence``, one all-inlier sample if ``min_num_inliers`` of the matches are inliers
+   (:func:`ransac_trials`; for H, ``max_h_inlier_ratio`` of the E/F inliers): a model with
+   fewer is rejected anyway, and most pairs of an exhaustive match are chance matches.
 
 Randomness: every USAC call gets ``UsacParams.randomGeneratorState`` from the caller's seed, so
 the result depends only on (seed, input) - not on the process or on the order of pairs. (The
@@ -28,6 +32,7 @@ and :func:`from_colmap_pixels` back, the one place that knows. E, qvec and tvec 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -75,12 +80,33 @@ def pair_seed(seed: int, image_id1: int, image_id2: int) -> int:
     return int(np.random.SeedSequence([int(seed), a, b]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
-def _usac(threshold: float, options: VerifyOptions, state: int) -> cv2.UsacParams:
+def ransac_trials(
+    num_matches: int, needed_inliers: float, sample_size: int, confidence: float, cap: int
+) -> int:
+    """Iterations after which RANSAC has, with ``confidence``, drawn one all-inlier sample of
+    ``sample_size`` if at least ``needed_inliers`` of the ``num_matches`` are inliers; at most
+    ``cap``.  A model with fewer inliers than that is rejected anyway, so iterating longer only
+    looks for something the test discards (COLMAP bounds its trials the same way, through
+    ``min_inlier_ratio``).  Most pairs of an exhaustive match have a few dozen chance matches and
+    no model: they used to run all ``cap`` iterations."""
+    ratio = min(float(needed_inliers) / max(int(num_matches), 1), 1.0)
+    p_good = ratio**sample_size
+    if p_good >= 1.0:
+        return 1
+    if p_good <= 0.0:
+        return int(cap)
+    trials = math.log(1.0 - confidence) / math.log1p(-p_good)
+    return int(min(cap, max(1, math.ceil(trials))))
+
+
+def _usac(
+    threshold: float, options: VerifyOptions, state: int, max_iterations: int | None = None
+) -> cv2.UsacParams:
     """The settings ``method=cv2.USAC_MAGSAC`` uses, with our state, iterations and confidence."""
     p = cv2.UsacParams()
     p.threshold = float(threshold)
     p.confidence = float(options.confidence)
-    p.maxIterations = int(options.max_iterations)
+    p.maxIterations = int(options.max_iterations if max_iterations is None else max_iterations)
     p.isParallel = False
     p.randomGeneratorState = int(state)
     p.sampler = cv2.SAMPLING_UNIFORM
@@ -159,8 +185,11 @@ def _calibrated(camera: CameraLike) -> bool:
 def _essential(x1n, x2n, threshold_n, scale, max_error_px, options, state):
     """(inlier mask, E, R, t) of the calibrated model, or None when estimation fails."""
     eye, zero = np.eye(3), np.zeros(5)
+    trials = ransac_trials(
+        len(x1n), options.min_num_inliers, 5, options.confidence, options.max_iterations
+    )
     E, mask = cv2.findEssentialMat(
-        x1n, x2n, eye, eye, zero, zero, _usac(threshold_n, options, state)
+        x1n, x2n, eye, eye, zero, zero, _usac(threshold_n, options, state, trials)
     )
     if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < 5:
         return None
@@ -168,7 +197,9 @@ def _essential(x1n, x2n, threshold_n, scale, max_error_px, options, state):
     # E's four (R, t) differ in which side of the cameras the points fall: evenly spaced
     # inliers decide that as well as all of them, at a fraction of the triangulations
     chosen = np.flatnonzero(ransac)
-    chosen = chosen[np.linspace(0, len(chosen) - 1, min(len(chosen), CHEIRALITY_POINTS)).astype(int)]
+    chosen = chosen[
+        np.linspace(0, len(chosen) - 1, min(len(chosen), CHEIRALITY_POINTS)).astype(int)
+    ]
     _, rotation, translation, _ = cv2.recoverPose(E, x1n[chosen], x2n[chosen])
     for _ in range(2):  # refine on the RANSAC inliers, re-classify, refine again
         rotation, translation = refine_relative_pose(
@@ -214,14 +245,25 @@ def verify_pair(
             config = TwoViewConfig.CALIBRATED
             qvec, tvec = rotation_to_quaternion(rotation), translation.ravel().copy()
         else:
-            F, mask = cv2.findFundamentalMat(p1, p2, _usac(thr, options, seed))
+            trials = ransac_trials(
+                len(p1), options.min_num_inliers, 7, options.confidence, options.max_iterations
+            )
+            F, mask = cv2.findFundamentalMat(p1, p2, _usac(thr, options, seed, trials))
             if F is None or F.shape != (3, 3) or mask is None:
                 return _degenerate()
             inliers = np.abs(sampson_distances(F, p1, p2)) <= thr
             config = TwoViewConfig.UNCALIBRATED
         if inliers.sum() < options.min_num_inliers:
             return _degenerate()
-        H, h_mask = cv2.findHomography(p1, p2, _usac(thr, options, seed))
+        # only an H with more than max_h_inlier_ratio of the E/F inliers changes the verdict
+        trials = ransac_trials(
+            len(p1),
+            options.max_h_inlier_ratio * inliers.sum(),
+            4,
+            options.confidence,
+            options.max_iterations,
+        )
+        H, h_mask = cv2.findHomography(p1, p2, _usac(thr, options, seed, trials))
     except cv2.error:  # degenerate point sets make OpenCV throw
         return _degenerate()
     if H is not None and H.shape == (3, 3) and h_mask is not None:

@@ -17,6 +17,7 @@ from sfm.geometry import (
 from sfm.verification import (
     VerifyOptions,
     from_colmap_pixels,
+    ransac_trials,
     sampson_distances,
     to_colmap_pixels,
     verify_pair,
@@ -141,6 +142,27 @@ def test_too_few_or_random_matches_are_not_verified(prior):
         *two_view_scene(9, cam, n=100)[:3], cam, cam, VerifyOptions(min_num_inliers=80)
     )
     assert strict.config < 2 and strict.num_inliers == 0  # 70 true matches < 80
+
+
+def test_ransac_trials_bound():
+    # 5-point samples, half the matches needed, 99 %: log(0.01) / log(1 - 1/32) = 145.04
+    assert ransac_trials(100, 50, 5, 0.99, 10_000) == 146
+    assert ransac_trials(20, 15, 7, 0.999, 10_000) == 49  # 0.75^7 = 0.1335
+    assert ransac_trials(1000, 15, 5, 0.999, 10_000) == 10_000  # the cap
+    assert ransac_trials(15, 15, 5, 0.999, 10_000) == 1  # every match must be an inlier
+    assert ransac_trials(0, 15, 5, 0.999, 10_000) == 1
+
+
+@pytest.mark.parametrize("prior", [True, False])
+@pytest.mark.parametrize("seed", [20, 21, 22])
+def test_small_pair_with_enough_inliers_is_verified(prior, seed):
+    """The trial bound keeps small true pairs: 40 matches of which 24 are true (E or F)."""
+    cam = pinhole(prior=prior, model="SIMPLE_RADIAL")
+    kp1, kp2, matches, is_true, _, _ = two_view_scene(seed, cam, n=40, outlier_ratio=0.4)
+    g = verify_pair(kp1, kp2, matches, cam, cam, seed=seed)
+    assert g.config == (TwoViewConfig.CALIBRATED if prior else TwoViewConfig.UNCALIBRATED)
+    recall, wrong = inlier_stats(g, is_true)
+    assert recall >= 0.75 and wrong <= 0.1  # as with 10,000 trials: small samples, noisy E
 
 
 def test_same_seed_same_result():
