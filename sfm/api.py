@@ -50,6 +50,7 @@ def reconstruct(images: str | Path | None, workspace: str | Path, workers: int =
     >>> models, report = reconstruct("photos", "work", max_cluster_size=50, seed=0)  # doctest: +SKIP
     """
     from sfm.executors import LocalExecutor
+    from sfm.process_pool import start_pool_server
 
     if executor == "dask":
         from sfm.dask_executor import DaskExecutor
@@ -60,6 +61,7 @@ def reconstruct(images: str | Path | None, workspace: str | Path, workers: int =
     else:
         raise ValueError(f"executor must be 'local' or 'dask' (scheduler only with dask), got {executor!r}")
     workspace = Path(workspace)
+    start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
     recorder = Recorder(workspace / "recording.rrd", workspace) if recording else Recorder.disabled()
     with recorder, runner:
         report = run_reconstruct(workspace, Path(images) if images is not None else None, make_options(**options),

@@ -10,7 +10,6 @@ distributed executor (Dask) implements the same ``run`` interface.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 import socket
 from collections.abc import Iterator, Sequence
@@ -22,6 +21,7 @@ from tqdm import tqdm
 from sfm.incremental import reconstruct_incremental
 from sfm.mapper_input import MapperInput, MapperOptions
 from sfm.model import Reconstruction
+from sfm.process_pool import pool_context
 from sfm.recording import Recorder
 
 log = logging.getLogger(__name__)
@@ -85,8 +85,7 @@ class LocalExecutor:
         # payload queued ahead per worker (each is read and pickled only then: memory).
         sizes, labels = payload_sizes(payloads), payload_labels(payloads)
         pending = iter(sorted(range(len(payloads)), key=lambda k: -sizes[k]))
-        ctx = mp.get_context("forkserver")
-        with ProcessPoolExecutor(max_workers=min(self.workers, len(payloads)), mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=min(self.workers, len(payloads)), mp_context=pool_context()) as pool:
             futures: dict = {}
 
             def submit_next() -> None:

@@ -40,19 +40,19 @@ Resuming: images that already have keypoints in ``WORK/database.db`` are skipped
 written as soon as its worker returns it (``sfm.extract_store``, which also keeps
 ``WORK/extract.json``), so an interrupted run loses only the images in flight.
 
-Parallelism: a ``ProcessPoolExecutor`` with the ``spawn`` start method (safe with OpenCV's
-threads; a worker killed by the kernel raises ``BrokenProcessPool`` instead of hanging as
-``multiprocessing.Pool`` would); workers decode and run SIFT with ``cv2.setNumThreads(1)`` and
-return numpy arrays; only the parent writes the database. ``num_workers = 1`` runs in-process.
-Spawn re-imports the caller's main module, so a script that calls :func:`run_extract` with
-several workers needs the usual ``if __name__ == "__main__":`` guard (the CLI has it).
+Parallelism: a ``ProcessPoolExecutor`` started as ``sfm.process_pool`` says (forked from a
+fork server that imported this module once, safe with OpenCV's threads; a worker killed by the
+kernel raises ``BrokenProcessPool`` instead of hanging as ``multiprocessing.Pool`` would);
+workers decode and run SIFT with ``cv2.setNumThreads(1)`` and return numpy arrays; only the
+parent writes the database. ``num_workers = 1`` runs in-process. The workers import the
+caller's main module, so a script that calls :func:`run_extract` with several workers needs the
+usual ``if __name__ == "__main__":`` guard (the CLI has it).
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
-import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -86,6 +86,7 @@ from sfm.intrinsics import (
     read_intrinsics,
     warn_unused_lines,
 )
+from sfm.process_pool import pool_context
 from sfm.workspace import DATABASE
 
 logger = logging.getLogger(__name__)
@@ -267,7 +268,8 @@ def _with_bytes(jobs: Iterable[_Job]) -> Iterator[_Job]:
 @contextmanager
 def _mapper(num_workers: int, num_jobs: int, executor=None) -> Iterator[Mapper]:
     """An ordered ``map``: on a distributed ``executor`` (its ``imap``; headers are probed here,
-    images travel as bytes), over a spawn process pool, or the built-in map for one worker."""
+    images travel as bytes), over a local process pool (``sfm.process_pool``), or the built-in
+    map for one worker."""
     if executor is not None and hasattr(executor, "imap"):
         def remote(func, items):
             if func is _probe_job:  # header reads: cheaper here than shipping every file
@@ -280,8 +282,7 @@ def _mapper(num_workers: int, num_jobs: int, executor=None) -> Iterator[Mapper]:
     if workers <= 1:
         yield lambda func, items: map(func, items)
         return
-    ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker)
+    pool = ProcessPoolExecutor(workers, mp_context=pool_context(), initializer=_init_worker)
     ok = False
     try:
         yield lambda func, items: pool.map(func, items)

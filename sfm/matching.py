@@ -14,7 +14,7 @@ KD-tree (4 trees, 64 checks), approximate (about 97 % of the exact matches), see
 ``cv2.setRNGSeed`` so it is deterministic. ``auto`` takes brute up to 2^27 descriptor pairs
 (about 11.6k x 11.6k features) and flann above, where its n log n wins.
 
-Parallelism: a process pool (``spawn``; scripts need the ``if __name__ == "__main__"`` guard) of
+Parallelism: a process pool (``sfm.process_pool``; scripts need the ``if __name__ == "__main__"`` guard) of
 ``num_workers``; each worker calls ``cv2.setNumThreads(1)``, limits BLAS to one thread, and reads
 keypoints and descriptors itself from the database (read-only, an LRU cache of images), so only
 pair ids and results travel. A worker that dies raises ``BrokenProcessPool``; finished batches
@@ -25,7 +25,6 @@ Results are identical for any number of workers: every random choice is seeded b
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import time
 from collections import OrderedDict
@@ -42,6 +41,7 @@ from sfm.database import Database
 from sfm.database_schema import CameraRecord, TwoViewGeometry
 from sfm.errors import InputError
 from sfm.pairs import select_pairs
+from sfm.process_pool import pool_context
 from sfm.stages import options_record, resume_or_restart
 from sfm.verification import VerifyOptions, pair_seed, to_colmap_pixels, verify_pair
 
@@ -376,7 +376,7 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
             # an executor, not multiprocessing.Pool: a worker that dies or fails to start raises
             # BrokenProcessPool here instead of being respawned forever
             pool = ProcessPoolExecutor(
-                workers, multiprocessing.get_context("spawn"), _init_worker,
+                workers, pool_context(), _init_worker,
                 (str(db.path), camera_of, cameras, options),
             )  # fmt: skip
             chunk = max(1, min(16, len(todo) // (8 * workers)))
