@@ -62,6 +62,26 @@ def focal_lengths(model: str, params: np.ndarray) -> tuple[float, float]:
     return float(fx), float(fy)
 
 
+def has_bogus_params(model: str, params: np.ndarray, width: int, height: int, min_focal_ratio: float = 0.1,
+                     max_focal_ratio: float = 10.0, max_extra_param: float = 1.0) -> bool:
+    """COLMAP's test for intrinsics a bundle adjustment has driven somewhere no lens is (its
+    mapper's defaults): a focal length outside [0.1, 10] x the longer image side, a principal
+    point outside the image, a distortion parameter above 1 in magnitude, or anything not
+    finite."""
+    spec = model_spec(model)
+    params = np.asarray(params, dtype=np.float64)
+    if not np.all(np.isfinite(params)):
+        return True
+    size = float(max(width, height))
+    ratios = params[list(spec.focal_idx)] / size
+    cx, cy = params[list(spec.pp_idx)]
+    return bool(
+        np.any(ratios < min_focal_ratio) or np.any(ratios > max_focal_ratio)
+        or not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5)
+        or np.any(np.abs(params[list(spec.extra_idx)]) > max_extra_param)
+    )  # fmt: skip
+
+
 def calibration_matrix(model: str, params: np.ndarray) -> np.ndarray:
     """Pinhole K (OpenCV convention) ignoring distortion."""
     spec = model_spec(model)

@@ -136,7 +136,7 @@ def _register_next(state: MapperState) -> bool:
             break  # candidates are sorted by visible points
         x = state.obs_norm[rows]
         usac = cv2.UsacParams()
-        usac.threshold = opts.max_reproj_error / state.focal(i)
+        usac.threshold = opts.abs_pose_max_error / state.focal(i)
         usac.confidence = 0.9999
         usac.maxIterations = 10000
         usac.randomGeneratorState = opts.seed + i

@@ -16,6 +16,7 @@ import numpy as np
 from backend.bundle_adjustment import BAOptions
 from backend.partitioned_ba import bundle_adjust_partitioned
 from backend.track_subset import select_tracks
+from sfm.camera_models import has_bogus_params
 from sfm.tracks import work_cuts
 from sfm.triangulation import max_triangulation_angles, refine_points
 
@@ -33,6 +34,10 @@ _TRIANGULATION_ROWS = 250_000
 # BA on a gradient tolerance instead (Ceres, 1 in cost units, 50 iterations).
 _GROWING_TOLERANCE = 1e-3
 _FINAL_TOLERANCE = 1e-4
+
+# Registered images from which a camera with degenerate intrinsics takes its images out of the
+# model (COLMAP's IncrementalMapper::FilterImages waits for 20).
+MIN_IMAGES_FOR_CAMERA_FILTER = 20
 
 
 def _gather(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -117,7 +122,37 @@ class BundleAdjustmentSteps:
             self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, _GROWING_TOLERANCE)
             if len(subset) < len(tracks):
                 self._refine_points(np.setdiff1d(tracks, subset))
+        self.drop_degenerate_cameras()
         self.filter_observations(tracks)
+
+    def drop_degenerate_cameras(self) -> None:
+        """COLMAP's image filter after a global BA: the images of a camera whose refined
+        intrinsics became bogus (``sfm.camera_models.has_bogus_params``; a camera seen by a
+        handful of observations can drift there) leave the model, and the camera returns to
+        its prior, so one bad camera neither stays in the model nor poisons the others'
+        points with non-finite coordinates.  An image dropped this way may register again.
+        Not before ``MIN_IMAGES_FOR_CAMERA_FILTER`` images are registered: a young model's
+        intrinsics still move a lot (COLMAP's rule and number).  Until then, rows a camera
+        cannot unproject are left out of triangulation and registration."""
+        if self.num_registered < MIN_IMAGES_FOR_CAMERA_FILTER:
+            return
+        changed = False
+        for c, prior in enumerate(self.priors):
+            if not has_bogus_params(prior.model, self.params[c], prior.width, prior.height):
+                continue
+            images = np.flatnonzero(self.registered & (self.cam_index == c))
+            log.info("%s: camera %d has degenerate intrinsics %s after BA: %d image(s) leave the model",
+                     self.payload.label, c, np.array2string(self.params[c], precision=4), len(images))
+            for i in images:
+                self.registered[i] = False
+                self.obs_inlier[self.image_rows[i]] = False
+                self.failed[i] += 1
+                self.fail_visible[i] = len(self.visible_points(i)[0])
+            self.num_registered -= len(images)
+            self.params[c] = np.array(prior.params, dtype=np.float64)
+            changed = True
+        if changed:
+            self._update_normalised()
 
     def _ba_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most

@@ -53,6 +53,9 @@ class MapperOptions:
     init_max_pairs: initial-pair candidates examined per attempt (most inliers first).
     abs_pose_min_num_inliers: PnP inliers needed to register an image (COLMAP: 30).
     abs_pose_min_inlier_ratio: share of PnP inliers needed (COLMAP: 0.25).
+    abs_pose_max_error: PnP RANSAC inlier threshold in pixels (COLMAP: 12): looser than
+        ``max_reproj_error`` because the 3D points of a growing model carry its drift; the
+        registered image keeps only the observations within ``max_reproj_error``.
     max_reproj_error: pixel error above which an observation is an outlier (COLMAP: 4).
     min_tri_angle: smallest triangulation angle (degrees) of a point (COLMAP: 1.5).
     local_ba_num_images: images optimised by the local BA after each registration (COLMAP: 6).
@@ -83,6 +86,7 @@ class MapperOptions:
     init_max_pairs: int = 100
     abs_pose_min_num_inliers: int = 30
     abs_pose_min_inlier_ratio: float = 0.25
+    abs_pose_max_error: float = 12.0
     max_reproj_error: float = 4.0
     min_tri_angle: float = 1.5
     local_ba_num_images: int = 6

@@ -169,7 +169,7 @@ class MapperState(BundleAdjustmentSteps):
 
     def visible_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         rows = self.image_rows[i]
-        rows = rows[self.track_valid[self.obs_track[rows]]]
+        rows = rows[self.track_valid[self.obs_track[rows]] & np.isfinite(self.obs_norm[rows]).all(axis=1)]
         return rows, self.track_xyz[self.obs_track[rows]]
 
     def note_failure(self, i: int, visible: int) -> None:
@@ -196,7 +196,8 @@ class MapperState(BundleAdjustmentSteps):
 
     def _triangulate_chunk(self, tracks: np.ndarray) -> int:
         rows, owner = _gather(self.starts, tracks)
-        keep = self.registered[self.obs_image[rows]]
+        # rows of registered images; not those a degenerate camera cannot unproject
+        keep = self.registered[self.obs_image[rows]] & np.isfinite(self.obs_norm[rows]).all(axis=1)
         rows, owner = rows[keep], owner[keep]
         accepted = np.zeros(len(tracks), dtype=bool)
         xyz_out = np.full((len(tracks), 3), np.nan)

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sfm.camera_models import params_from_colmap, params_to_colmap, project, unproject
+from sfm.camera_models import (
+    has_bogus_params,
+    params_from_colmap,
+    params_to_colmap,
+    project,
+    unproject,
+)
 from sfm.geometry import (
     Sim3,
     look_at,
@@ -156,3 +162,15 @@ def test_camera_param_count_checked():
         Camera(1, "SIMPLE_RADIAL", 10, 10, [1.0, 2.0])
     with pytest.raises(ValueError, match="unsupported camera model"):
         Camera(1, "FISHEYE_X", 10, 10, [1.0])
+
+
+def test_bogus_intrinsics_are_recognised():
+    """COLMAP's limits: focal in [0.1, 10] x the longer side, principal point in the image,
+    distortion parameters within +-1, everything finite."""
+    assert not has_bogus_params("SIMPLE_RADIAL", [1200.0, 639.5, 479.5, -0.2], 1280, 960)
+    assert has_bogus_params("SIMPLE_RADIAL", [1200.0, 639.5, 479.5, -1.01], 1280, 960)
+    assert has_bogus_params("SIMPLE_RADIAL", [100.0, 639.5, 479.5, 0.0], 1280, 960)  # f/1280 < 0.1
+    assert has_bogus_params("PINHOLE", [1200.0, 13000.0, 639.5, 479.5], 1280, 960)  # fy/1280 > 10
+    assert has_bogus_params("PINHOLE", [1200.0, 1200.0, 1300.0, 479.5], 1280, 960)  # cx outside
+    assert has_bogus_params("OPENCV", [1200.0, 1200.0, 639.5, 479.5, 0.0, 0.0, 1.5, 0.0], 1280, 960)
+    assert has_bogus_params("SIMPLE_RADIAL", [np.nan, 639.5, 479.5, 0.0], 1280, 960)
