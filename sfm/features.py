@@ -18,8 +18,13 @@ Conventions:
   SIFT (SIFT never sees the full image); keypoints are mapped back to full-resolution pixels with
   OpenCV's pixel-centre convention ``x = (x_small + 0.5) * sx - 0.5`` (likewise y) and their
   scale multiplied by the mean of ``sx, sy``.
-- At most ``max_num_features`` keypoints per image: the strongest by SIFT response, stored in
-  decreasing response order (OpenCV's own ``nfeatures`` can keep a few more on ties).
+- At most ``max_num_features`` keypoint *locations* per image, the strongest by SIFT response,
+  each with at most ``MAX_ORIENTATIONS`` (2) orientations: COLMAP's meaning of the option (it
+  caps the detections, then gives each up to ``max_num_orientations = 2`` descriptors), so a
+  busy image holds about 1.2 x ``max_num_features`` keypoints (OpenCV's own ``nfeatures``
+  counts each orientation as a keypoint: 8,192 keypoints were only ~6,700 locations, and the
+  oblique views of sceaux_castle found too few matches to register).  Stored in decreasing
+  response order.
 - Keypoints are float32 rows ``(x, y, scale, orientation)``: the 4-column layout COLMAP reads.
   ``scale = KeyPoint.size / 2`` (OpenCV's size is the diameter ``2 sigma`` of the keypoint's
   Gaussian scale; COLMAP's and VLFeat's scale is ``sigma``), ``orientation =
@@ -87,6 +92,7 @@ from sfm.intrinsics import (
     warn_unused_lines,
 )
 from sfm.process_pool import pool_context
+from sfm.sift import MAX_ORIENTATIONS, quantize_descriptors, strongest_locations
 from sfm.workspace import DATABASE
 
 logger = logging.getLogger(__name__)
@@ -98,7 +104,8 @@ class ExtractOptions:
 
     max_image_size: images whose longer side is larger are shrunk to it (INTER_AREA) before
         SIFT; keypoints are still in full-resolution pixels.
-    max_num_features: keypoints kept per image, the strongest by SIFT response.
+    max_num_features: keypoint locations kept per image, the strongest by SIFT response, each
+        with up to 2 orientations (COLMAP's meaning).
     camera_mode: one of auto|single|per-folder|per-image. auto: one camera per image size, EXIF
         make/model and EXIF focal; single: one camera for all images (they must have one size);
         per-folder: one camera per sub-folder; per-image: one camera per image.
@@ -160,31 +167,20 @@ class ExtractResult:
 
 
 # ----------------------------------------------------------------------------- library
-def quantize_descriptors(descriptors: np.ndarray, root_sift: bool = True) -> np.ndarray:
-    """(N, 128) uint8: RootSIFT (L1-normalise, sqrt) or L2-normalised, times 512, rounded,
-    clipped to 255 (COLMAP's ``FeatureDescriptorsToUnsignedByte``)."""
-    d = np.maximum(np.asarray(descriptors, np.float64).reshape(-1, 128), 0.0)
-    if root_sift:
-        l1 = d.sum(axis=1, keepdims=True)
-        d = np.sqrt(d / np.where(l1 > 0, l1, 1.0))
-    else:
-        l2 = np.linalg.norm(d, axis=1, keepdims=True)
-        d = d / np.where(l2 > 0, l2, 1.0)
-    return np.minimum(np.round(512.0 * d), 255.0).astype(np.uint8)
-
-
 def detect_sift(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:
     """SIFT on an 8-bit grey image as given: ``(keypoints (N, 4) float32 x, y, scale,
-    orientation; descriptors (N, 128) uint8)``, strongest first, N <= max_num_features."""
-    sift = cv2.SIFT_create(
-        nfeatures=options.max_num_features, contrastThreshold=options.contrast_threshold,
-        edgeThreshold=options.edge_threshold, enable_precise_upscale=True,
+    orientation; descriptors (N, 128) uint8)``, strongest first: at most ``max_num_features``
+    locations, each with at most ``MAX_ORIENTATIONS`` orientations (module docstring)."""
+    sift = cv2.SIFT_create(  # OpenCV keeps the strongest keypoints, one per orientation
+        nfeatures=MAX_ORIENTATIONS * options.max_num_features,
+        contrastThreshold=options.contrast_threshold, edgeThreshold=options.edge_threshold,
+        enable_precise_upscale=True,
     )  # fmt: skip
     kps, desc = sift.detectAndCompute(gray, None)
     if not kps or desc is None:
         return np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
     rows = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in kps], np.float64)
-    order = np.argsort(-rows[:, 4], kind="stable")[: options.max_num_features]
+    order = strongest_locations(rows[:, :3], rows[:, 4], options.max_num_features, MAX_ORIENTATIONS)
     rows = rows[order]
     keypoints = np.column_stack(
         [rows[:, 0], rows[:, 1], rows[:, 2] / 2.0, np.deg2rad(np.mod(rows[:, 3], 360.0))]

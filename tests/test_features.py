@@ -31,7 +31,8 @@ def test_extract_counts_layout_and_rootsift(tmp_path):
     _, images, kps, descs = read_db(tmp_path / "ws")
     for name in images:
         kp, desc = kps[name], descs[name]
-        assert 0 < len(kp) <= 500 and kp.shape[1] == 4 and kp.dtype == np.float32
+        assert 0 < len(np.unique(kp[:, :3], axis=0)) <= 500 and kp.shape[1] == 4 and kp.dtype == np.float32
+        assert len(kp) <= 1000
         assert desc.shape == (len(kp), 128) and desc.dtype == np.uint8
         assert np.all(
             (kp[:, 0] >= -0.5) & (kp[:, 0] <= 639.5) & (kp[:, 1] >= -0.5) & (kp[:, 1] <= 479.5)
@@ -168,7 +169,9 @@ def test_resume_and_new_images(tmp_path, caplog):
     assert (fourth.num_extracted, fourth.num_skipped_existing, fourth.num_cameras) == (4, 0, 1)
     assert any("max_num_features: 1000 -> 200" in r.getMessage() for r in caplog.records)
     _, _, kps, _ = read_db(tmp_path / "ws")
-    assert max(len(k) for k in kps.values()) == 200
+    # 200 keypoint locations (COLMAP's meaning), each with at most two orientations
+    assert max(len(np.unique(k[:, :3], axis=0)) for k in kps.values()) == 200
+    assert all(len(k) <= 400 for k in kps.values())
 
 
 def test_resume_keeps_rows_and_checks_shared_camera_sizes(tmp_path):

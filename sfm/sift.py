@@ -1,0 +1,48 @@
+"""Which SIFT keypoints an image keeps, and how descriptors are stored (``sfm.features``).
+
+Pure array functions, no OpenCV objects: :func:`strongest_locations` applies COLMAP's meaning
+of ``max_num_features`` (keypoint locations, each with up to ``MAX_ORIENTATIONS``
+descriptors) to OpenCV's output, where every orientation is a keypoint of its own;
+:func:`quantize_descriptors` is COLMAP's RootSIFT-to-bytes conversion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Orientations one keypoint location keeps (COLMAP's SiftExtraction.max_num_orientations).
+MAX_ORIENTATIONS = 2
+
+
+def strongest_locations(locations: np.ndarray, response: np.ndarray, max_locations: int,
+                        max_orientations: int = MAX_ORIENTATIONS) -> np.ndarray:
+    """Indices of the keypoints to keep, strongest response first: those of the
+    ``max_locations`` strongest locations (rows of ``locations`` that are equal, e.g. x, y,
+    size, are one location seen at several orientations), at most ``max_orientations`` per
+    location (its strongest)."""
+    order = np.argsort(-np.asarray(response), kind="stable")
+    if len(order) == 0:
+        return order
+    _, first, location = np.unique(np.asarray(locations)[order], axis=0, return_index=True, return_inverse=True)
+    location = location.ravel()
+    rank = np.empty(len(first), np.int64)  # locations ranked by their strongest keypoint
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    by_location = np.argsort(location, kind="stable")  # strongest first within a location
+    starts = np.searchsorted(location[by_location], np.arange(len(first)))
+    sizes = np.diff(np.append(starts, len(order)))
+    nth = np.empty(len(order), np.int64)  # 0: a location's strongest keypoint, 1: the next...
+    nth[by_location] = np.arange(len(order)) - np.repeat(starts, sizes)
+    return order[(rank[location] < max_locations) & (nth < max_orientations)]
+
+
+def quantize_descriptors(descriptors: np.ndarray, root_sift: bool = True) -> np.ndarray:
+    """(N, 128) uint8: RootSIFT (L1-normalise, sqrt) or L2-normalised, times 512, rounded,
+    clipped to 255 (COLMAP's ``FeatureDescriptorsToUnsignedByte``)."""
+    d = np.maximum(np.asarray(descriptors, np.float64).reshape(-1, 128), 0.0)
+    if root_sift:
+        l1 = d.sum(axis=1, keepdims=True)
+        d = np.sqrt(d / np.where(l1 > 0, l1, 1.0))
+    else:
+        l2 = np.linalg.norm(d, axis=1, keepdims=True)
+        d = d / np.where(l2 > 0, l2, 1.0)
+    return np.minimum(np.round(512.0 * d), 255.0).astype(np.uint8)
