@@ -26,6 +26,7 @@ from sfm.mapper_output import log_progress, to_reconstruction
 from sfm.mapper_state import MapperState
 from sfm.model import Reconstruction
 from sfm.recording import Recorder
+from sfm.structureless import register_structureless
 from sfm.triangulation import triangulate_dlt
 
 log = logging.getLogger(__name__)
@@ -170,7 +171,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
             break
         last_global = state.num_registered
         log_progress(state, recorder)
-        while _register_next(state):
+        while _register_next(state) or register_structureless(state, _relative_pose):
             state.triangulate_new(state.last_registered)
             if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= 10:
                 state.global_ba()  # covers what the local BA would adjust

@@ -171,4 +171,5 @@ def test_a_changed_option_recomputes_its_stage_and_the_later_ones_only(images, r
     stages = ledger(ws)
     assert stages["extract"]["options"]["max_num_features"] == 1000
     with sqlite3.connect(ws / "database.db") as conn:
-        assert conn.execute("SELECT MAX(rows) FROM keypoints").fetchone()[0] == 1000
+        # 1,000 keypoint locations, each with at most two orientations (sfm.sift)
+        assert 1000 <= conn.execute("SELECT MAX(rows) FROM keypoints").fetchone()[0] <= 2000

@@ -1,0 +1,98 @@
+"""Registering an image that sees too few 3D points for PnP (COLMAP's structure-less fallback,
+in a simpler form).
+
+In forward motion (a street walked along) a new view shares most of its matches with the last
+registered view, whose points are not triangulated yet: no candidate sees
+``abs_pose_min_num_inliers`` triangulated points, PnP cannot start, and the model stops.
+COLMAP 4 then registers from 2D-2D correspondences (``structure_less_registration_fallback``,
+on by default).  Here: the essential matrix of the image with its best registered neighbour
+gives the rotation and the direction of the baseline; its one missing degree of freedom, the
+baseline's length, comes from the few triangulated points the image does see (each point gives
+a 1-D estimate; their median, then again over the inliers).  Accepted when the essential matrix
+has at least ``abs_pose_min_num_inliers`` inliers and at least :data:`MIN_SCALE_POINTS` points,
+and ``abs_pose_min_inlier_ratio`` of those seen, reproject within ``max_reproj_error``.  The
+local BA that follows refines the pose as after any registration.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from sfm.mapper_state import MapperState
+
+log = logging.getLogger("sfm.mapper_state")
+
+# Points that must agree on the baseline length (a median of 1-D estimates; OpenSfM registers
+# with 10 inliers).
+MIN_SCALE_POINTS = 10
+
+
+def _best_registered_neighbour(state: MapperState, i: int) -> tuple[int, np.ndarray] | None:
+    """The registered image with most verified matches to ``i`` and those matches as
+    (keypoint in it, keypoint in ``i``) rows, or None."""
+    best = None
+    for (a, b), (m, _config) in state.pair_matches.items():
+        if i not in (a, b):
+            continue
+        j = b if a == i else a
+        if not state.registered[j] or len(m) < state.opts.abs_pose_min_num_inliers:
+            continue
+        if best is None or len(m) > len(best[1]):
+            best = (j, m if a == j else m[:, ::-1])
+    return best
+
+
+def _baseline_length(state: MapperState, i: int, R: np.ndarray, t0: np.ndarray, d: np.ndarray):
+    """(length, inlier count, points seen) of the baseline along ``d`` for image ``i`` with
+    rotation ``R``: its translation is ``t0 + length * d``."""
+    rows, X = state.visible_points(i)
+    if len(rows) < MIN_SCALE_POINTS:
+        return None
+    x = np.column_stack([state.obs_norm[rows], np.ones(len(rows))])
+    a = X @ R.T + t0
+    c, e = np.cross(x, a), np.cross(x, np.broadcast_to(d, a.shape))  # x × (a + s d) = 0
+    s = -np.sum(c * e, axis=1) / np.maximum(np.sum(e * e, axis=1), 1e-18)
+    length, inliers = np.median(s[s > 0]) if np.any(s > 0) else 0.0, np.zeros(len(rows), bool)
+    for _ in range(2):  # median of all positive estimates, then of the inliers
+        if length <= 0:
+            return None
+        state_t = t0 + length * d
+        xc = X @ R.T + state_t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(xc[:, :2] / xc[:, 2:] - x[:, :2], axis=1) * state.focal(i)
+        inliers = (xc[:, 2] > 0) & (err < state.opts.max_reproj_error)
+        if inliers.sum() < MIN_SCALE_POINTS:
+            return None
+        length = float(np.median(s[inliers]))
+    return length, int(inliers.sum()), len(rows)
+
+
+def register_structureless(state: MapperState, relative_pose) -> bool:
+    """Register one unregistered image from its best registered neighbour's essential matrix
+    and the points it sees (module docstring); False when no image passes.  ``relative_pose``
+    is :func:`sfm.incremental._relative_pose` (cam_i_from_cam_j, unit t, inliers)."""
+    opts = state.opts
+    candidates = []
+    for i in np.flatnonzero(~state.registered & ~state.used):
+        found = _best_registered_neighbour(state, int(i))
+        if found is not None:
+            candidates.append((-len(found[1]), int(i), found))
+    for _, i, (j, m) in sorted(candidates, key=lambda c: c[:2]):
+        rel = relative_pose(state, j, i, m, opts.seed + i)
+        if rel is None or int(rel[2].sum()) < opts.abs_pose_min_num_inliers:
+            continue
+        R_rel, t_rel, _ = rel
+        R = R_rel @ state.R[j]
+        found = _baseline_length(state, i, R, R_rel @ state.t[j], t_rel)
+        if found is None:
+            continue
+        length, n_inliers, n_seen = found
+        if n_inliers < opts.abs_pose_min_inlier_ratio * n_seen:
+            continue
+        log.debug("%s: %s registered without PnP: from %s's essential matrix (%d inliers) and %d of %d points",
+                  state.payload.label, state.names[i], state.names[j], int(rel[2].sum()), n_inliers, n_seen)
+        state.register(i, R, R_rel @ state.t[j] + length * t_rel)
+        return True
+    return False

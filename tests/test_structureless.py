@@ -1,0 +1,52 @@
+"""Registration without PnP (sfm.structureless) on a synthetic street with exact ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sfm.evaluation import read_gt_table
+from sfm.incremental import _relative_pose
+from sfm.mapper_input import MapperOptions
+from sfm.mapper_state import MapperState
+from sfm.mapping import load_payloads
+from sfm.structureless import register_structureless
+from sfm.synthetic import SynthOptions, run_synth
+
+
+def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
+
+
+def test_structureless_registration_recovers_pose_and_baseline(tmp_path):
+    """Seeded with two images at their true poses and their triangulated points, the images
+    registered from an essential matrix and the points they see get their true rotation and
+    camera centre (the baseline length included)."""
+    run_synth(tmp_path, SynthOptions(scene="street", num_images=10, observations_per_image=600,
+                                     outlier_ratio=0.2, seed=3))  # fmt: skip
+    gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    seeds = [state.names.index(n) for n in ("street_00003.jpg", "street_00006.jpg")]
+    for i in seeds:
+        state.register(i, gt[state.names[i]].rotation, gt[state.names[i]].translation)
+    state.triangulate_new(seeds[-1])
+    baseline = np.linalg.norm(_center(gt[state.names[seeds[0]]]) - _center(gt[state.names[seeds[1]]]))
+    for _ in range(3):
+        assert register_structureless(state, _relative_pose)
+        k = state.last_registered
+        assert k not in seeds
+        truth = gt[state.names[k]]
+        assert _rotation_deg(state.R[k], truth.rotation) < 0.1
+        assert np.linalg.norm(-state.R[k].T @ state.t[k] - _center(truth)) < 0.02 * baseline
+        state.triangulate_new(k)
+
+
+def _center(pose) -> np.ndarray:
+    return -pose.rotation.T @ pose.translation
+
+
+def test_structureless_registration_needs_a_registered_neighbour(tmp_path):
+    run_synth(tmp_path, SynthOptions(scene="street", num_images=6, observations_per_image=400, seed=4))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    assert not register_structureless(state, _relative_pose)  # nothing registered yet
