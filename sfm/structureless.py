@@ -29,18 +29,24 @@ log = logging.getLogger("sfm.mapper_state")
 MIN_SCALE_POINTS = 10
 
 
-def _best_registered_neighbour(state: MapperState, i: int) -> tuple[int, np.ndarray] | None:
-    """The registered image with most verified matches to ``i`` and those matches as
-    (keypoint in it, keypoint in ``i``) rows, or None."""
-    best = None
+def _best_registered_neighbours(state: MapperState) -> dict[int, tuple[int, np.ndarray]]:
+    """For each unregistered image of the current model's candidates, the registered image
+    with most verified matches to it (at least ``abs_pose_min_num_inliers``) and those
+    matches as (keypoint in the registered image, keypoint in the other) rows.  One pass over
+    the pairs."""
+    best: dict[int, tuple[int, np.ndarray]] = {}
+    open_image = ~state.registered & ~state.used
     for (a, b), (m, _config) in state.pair_matches.items():
-        if i not in (a, b):
+        if len(m) < state.opts.abs_pose_min_num_inliers:
             continue
-        j = b if a == i else a
-        if not state.registered[j] or len(m) < state.opts.abs_pose_min_num_inliers:
+        if state.registered[a] and open_image[b]:
+            j, i, rows = a, b, m
+        elif state.registered[b] and open_image[a]:
+            j, i, rows = b, a, m[:, ::-1]
+        else:
             continue
-        if best is None or len(m) > len(best[1]):
-            best = (j, m if a == j else m[:, ::-1])
+        if i not in best or len(rows) > len(best[i][1]):
+            best[i] = (j, rows)
     return best
 
 
@@ -58,8 +64,7 @@ def _baseline_length(state: MapperState, i: int, R: np.ndarray, t0: np.ndarray, 
     for _ in range(2):  # median of all positive estimates, then of the inliers
         if length <= 0:
             return None
-        state_t = t0 + length * d
-        xc = X @ R.T + state_t
+        xc = X @ R.T + t0 + length * d
         with np.errstate(divide="ignore", invalid="ignore"):
             err = np.linalg.norm(xc[:, :2] / xc[:, 2:] - x[:, :2], axis=1) * state.focal(i)
         inliers = (xc[:, 2] > 0) & (err < state.opts.max_reproj_error)
@@ -74,12 +79,11 @@ def register_structureless(state: MapperState, relative_pose) -> bool:
     and the points it sees (module docstring); False when no image passes.  ``relative_pose``
     is :func:`sfm.incremental._relative_pose` (cam_i_from_cam_j, unit t, inliers)."""
     opts = state.opts
-    candidates = []
-    for i in np.flatnonzero(~state.registered & ~state.used):
-        found = _best_registered_neighbour(state, int(i))
-        if found is not None:
-            candidates.append((-len(found[1]), int(i), found))
-    for _, i, (j, m) in sorted(candidates, key=lambda c: c[:2]):
+    neighbours = _best_registered_neighbours(state)
+    for i in sorted(neighbours, key=lambda k: (-len(neighbours[k][1]), k)):
+        j, m = neighbours[i]
+        if len(state.visible_points(i)[0]) < MIN_SCALE_POINTS:
+            continue  # no baseline length to be had: skip the essential matrix
         rel = relative_pose(state, j, i, m, opts.seed + i)
         if rel is None or int(rel[2].sum()) < opts.abs_pose_min_num_inliers:
             continue
