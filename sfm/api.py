@@ -61,7 +61,8 @@ def reconstruct(images: str | Path | None, workspace: str | Path, workers: int =
     else:
         raise ValueError(f"executor must be 'local' or 'dask' (scheduler only with dask), got {executor!r}")
     workspace = Path(workspace)
-    start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
+    if executor == "local":
+        start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
     recorder = Recorder(workspace / "recording.rrd", workspace) if recording else Recorder.disabled()
     with recorder, runner:
         report = run_reconstruct(workspace, Path(images) if images is not None else None, make_options(**options),

@@ -219,7 +219,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from sfm.process_pool import start_pool_server
     from sfm.recording import Recorder
 
-    start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
+    if getattr(args, "executor", "local") == "local":
+        start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
     recorder = Recorder.disabled() if args.no_recording else Recorder(workspace / "recording.rrd", workspace, spawn=args.spawn)
     with recorder, _executor(args) as executor:
         report = run_reconstruct(workspace, Path(args.images) if args.images else None, options, executor, recorder)

@@ -131,28 +131,34 @@ class BundleAdjustmentSteps:
         handful of observations can drift there) leave the model, and the camera returns to
         its prior, so one bad camera neither stays in the model nor poisons the others'
         points with non-finite coordinates.  An image dropped this way may register again.
+        Cameras held fixed, or already outside the limits as given, are left alone; so is every
+        camera when ``camera_filter`` is off (the refinement of merged poses, where nothing
+        would register the images again).
         Not before ``MIN_IMAGES_FOR_CAMERA_FILTER`` images are registered: a young model's
         intrinsics still move a lot (COLMAP's rule and number).  Until then, rows a camera
         cannot unproject are left out of triangulation and registration."""
-        if self.num_registered < MIN_IMAGES_FOR_CAMERA_FILTER:
+        if not self.camera_filter or self.num_registered < MIN_IMAGES_FOR_CAMERA_FILTER:
             return
-        changed = False
+        dropped = []
         for c, prior in enumerate(self.priors):
-            if not has_bogus_params(prior.model, self.params[c], prior.width, prior.height):
-                continue
             images = np.flatnonzero(self.registered & (self.cam_index == c))
+            if (prior.fixed or len(images) == 0
+                    or not has_bogus_params(prior.model, self.params[c], prior.width, prior.height)
+                    or has_bogus_params(prior.model, prior.params, prior.width, prior.height)):
+                continue  # held, unused, sound, or already so as given: nothing to go back to
             log.info("%s: camera %d has degenerate intrinsics %s after BA: %d image(s) leave the model",
                      self.payload.label, c, np.array2string(self.params[c], precision=4), len(images))
+            self.registered[images] = False
             for i in images:
-                self.registered[i] = False
                 self.obs_inlier[self.image_rows[i]] = False
-                self.failed[i] += 1
-                self.fail_visible[i] = len(self.visible_points(i)[0])
             self.num_registered -= len(images)
             self.params[c] = np.array(prior.params, dtype=np.float64)
-            changed = True
-        if changed:
+            dropped.extend(images.tolist())
+        if dropped:
             self._update_normalised()
+            for i in dropped:  # retried once they see 20% more points (next_image_candidates)
+                self.failed[i] += 1
+                self.fail_visible[i] = len(self.visible_points(i)[0])
 
     def _ba_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most

@@ -62,6 +62,11 @@ class MapperState(BundleAdjustmentSteps):
         self.used = np.zeros(n, dtype=bool)  # belongs to a finished model
         self.failed = np.zeros(n, dtype=np.int64)
         self.fail_visible = np.zeros(n, dtype=np.int64)
+        # points each image saw when structure-less registration last failed on it
+        self.structureless_failed: dict[int, int] = {}
+        # de-register the images of cameras whose intrinsics became degenerate (off when no
+        # registration follows, as in the refinement of merged poses)
+        self.camera_filter = True
         self._reset_model()
         log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
                   len(self.pair_matches), self.num_tracks, len(self.obs_image))
@@ -155,8 +160,7 @@ class MapperState(BundleAdjustmentSteps):
         they see 20% more points than at their last failure."""
         scored = []
         for i in np.flatnonzero(~self.registered & ~self.used):
-            rows = self.image_rows[i]
-            vis = rows[self.track_valid[self.obs_track[rows]]]
+            vis, _ = self.visible_points(i)
             if len(vis) < self.opts.abs_pose_min_num_inliers:
                 continue
             if self.failed[i] and len(vis) <= 1.2 * self.fail_visible[i]:

@@ -19,7 +19,9 @@ def strongest_locations(locations: np.ndarray, response: np.ndarray, max_locatio
     """Indices of the keypoints to keep, strongest response first: those of the
     ``max_locations`` strongest locations (rows of ``locations`` that are equal, e.g. x, y,
     size, are one location seen at several orientations), at most ``max_orientations`` per
-    location (its strongest)."""
+    location: the first in order of response (OpenCV gives a location's orientations the same
+    response, so the first in OpenCV's order).  ``locations`` may hold fewer than
+    ``max_locations`` distinct rows; then all of them count."""
     order = np.argsort(-np.asarray(response), kind="stable")
     if len(order) == 0:
         return order

@@ -5,7 +5,8 @@ In forward motion (a street walked along) a new view shares most of its matches 
 registered view, whose points are not triangulated yet: no candidate sees
 ``abs_pose_min_num_inliers`` triangulated points, PnP cannot start, and the model stops.
 COLMAP 4 then registers from 2D-2D correspondences (``structure_less_registration_fallback``,
-on by default).  Here: the essential matrix of the image with its best registered neighbour
+on by default).  Here, for the images PnP could not try (fewer than ``abs_pose_min_num_inliers``
+points seen; an image that failed here is retried once it sees 20% more): the essential matrix of the image with its best registered neighbour
 gives the rotation and the direction of the baseline; its one missing degree of freedom, the
 baseline's length, comes from the few triangulated points the image does see (each point gives
 a 1-D estimate; their median, then again over the inliers).  Accepted when the essential matrix
@@ -60,18 +61,19 @@ def _baseline_length(state: MapperState, i: int, R: np.ndarray, t0: np.ndarray, 
     a = X @ R.T + t0
     c, e = np.cross(x, a), np.cross(x, np.broadcast_to(d, a.shape))  # x × (a + s d) = 0
     s = -np.sum(c * e, axis=1) / np.maximum(np.sum(e * e, axis=1), 1e-18)
-    length, inliers = np.median(s[s > 0]) if np.any(s > 0) else 0.0, np.zeros(len(rows), bool)
-    for _ in range(2):  # median of all positive estimates, then of the inliers
-        if length <= 0:
-            return None
+    if not np.any(s > 0):
+        return None
+    length = float(np.median(s[s > 0]))
+    for attempt in range(3):  # the median of all positive estimates, then of the inliers twice
         xc = X @ R.T + t0 + length * d
         with np.errstate(divide="ignore", invalid="ignore"):
             err = np.linalg.norm(xc[:, :2] / xc[:, 2:] - x[:, :2], axis=1) * state.focal(i)
         inliers = (xc[:, 2] > 0) & (err < state.opts.max_reproj_error)
         if inliers.sum() < MIN_SCALE_POINTS:
             return None
-        length = float(np.median(s[inliers]))
-    return length, int(inliers.sum()), len(rows)
+        if attempt < 2:
+            length = float(np.median(s[inliers]))
+    return length, int(inliers.sum()), len(rows)  # the length these inliers were counted at
 
 
 def register_structureless(state: MapperState, relative_pose) -> bool:
@@ -82,19 +84,22 @@ def register_structureless(state: MapperState, relative_pose) -> bool:
     neighbours = _best_registered_neighbours(state)
     for i in sorted(neighbours, key=lambda k: (-len(neighbours[k][1]), k)):
         j, m = neighbours[i]
-        if len(state.visible_points(i)[0]) < MIN_SCALE_POINTS:
-            continue  # no baseline length to be had: skip the essential matrix
+        seen = len(state.visible_points(i)[0])
+        if not MIN_SCALE_POINTS <= seen < opts.abs_pose_min_num_inliers:
+            continue  # no baseline length to be had, or an image for PnP (which decides it)
+        if seen <= 1.2 * state.structureless_failed.get(i, -1):
+            continue  # failed here before, and sees hardly more points now
         rel = relative_pose(state, j, i, m, opts.seed + i)
         if rel is None or int(rel[2].sum()) < opts.abs_pose_min_num_inliers:
+            state.structureless_failed[i] = seen
             continue
         R_rel, t_rel, _ = rel
         R = R_rel @ state.R[j]
         found = _baseline_length(state, i, R, R_rel @ state.t[j], t_rel)
-        if found is None:
+        if found is None or found[1] < opts.abs_pose_min_inlier_ratio * found[2]:
+            state.structureless_failed[i] = seen
             continue
         length, n_inliers, n_seen = found
-        if n_inliers < opts.abs_pose_min_inlier_ratio * n_seen:
-            continue
         log.debug("%s: %s registered without PnP: from %s's essential matrix (%d inliers) and %d of %d points",
                   state.payload.label, state.names[i], state.names[j], int(rel[2].sum()), n_inliers, n_seen)
         state.register(i, R, R_rel @ state.t[j] + length * t_rel)

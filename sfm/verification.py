@@ -89,6 +89,8 @@ def ransac_trials(
     looks for something the test discards (COLMAP bounds its trials the same way, through
     ``min_inlier_ratio``).  Most pairs of an exhaustive match have a few dozen chance matches and
     no model: they used to run all ``cap`` iterations."""
+    if confidence >= 1.0:
+        return int(cap)  # certainty needs every iteration
     ratio = min(float(needed_inliers) / max(int(num_matches), 1), 1.0)
     p_good = ratio**sample_size
     if p_good >= 1.0:
