@@ -38,25 +38,21 @@ def _relative_pose(state: MapperState, i: int, j: int, matches: np.ndarray, seed
     """cam_j_from_cam_i (R, t with |t| = 1) from the matches' essential matrix, and its inliers."""
     x1 = state.norm_of(i, matches[:, 0])
     x2 = state.norm_of(j, matches[:, 1])
-    finite = np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1)  # a degenerate camera's rows
-    if finite.sum() < 8:
+    # rows a degenerate camera cannot unproject count as outliers
+    kept = np.flatnonzero(np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1))
+    if len(kept) < 8:
         return None
-    if not finite.all():  # the inlier mask refers to all matches: the others are outliers
-        rel = _relative_pose(state, i, j, matches[finite], seed)
-        if rel is None:
-            return None
-        inl = np.zeros(len(matches), dtype=bool)
-        inl[np.flatnonzero(finite)[rel[2]]] = True
-        return rel[0], rel[1], inl
+    x1, x2 = x1[kept], x2[kept]
     thr = state.opts.max_reproj_error / np.mean([state.focal(i), state.focal(j)])
     cv2.setRNGSeed(seed)
     E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=10000)
     if E is None or E.shape != (3, 3):
         return None
     n, R, t, mask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
-    inl = mask.ravel() > 0
     if n < 8:
         return None
+    inl = np.zeros(len(matches), dtype=bool)
+    inl[kept[mask.ravel() > 0]] = True
     return R, t.ravel() / np.linalg.norm(t), inl
 
 

@@ -5,9 +5,10 @@ In forward motion (a street walked along) a new view shares most of its matches 
 registered view, whose points are not triangulated yet: no candidate sees
 ``abs_pose_min_num_inliers`` triangulated points, PnP cannot start, and the model stops.
 COLMAP 4 then registers from 2D-2D correspondences (``structure_less_registration_fallback``,
-on by default).  Here, for the images PnP could not try (fewer than ``abs_pose_min_num_inliers``
-points seen; an image that failed here is retried once it sees 20% more): the essential matrix of the image with its best registered neighbour
-gives the rotation and the direction of the baseline; its one missing degree of freedom, the
+on by default).  Here, for the images PnP could not try (fewer than
+``abs_pose_min_num_inliers`` points seen; an image that failed here is retried once it sees
+20% more): the essential matrix of the image with its best registered neighbour gives the
+rotation and the direction of the baseline; its one missing degree of freedom, the
 baseline's length, comes from the few triangulated points the image does see (each point gives
 a 1-D estimate; their median, then again over the inliers).  Accepted when the essential matrix
 has at least ``abs_pose_min_num_inliers`` inliers and at least :data:`MIN_SCALE_POINTS` points,
@@ -51,12 +52,10 @@ def _best_registered_neighbours(state: MapperState) -> dict[int, tuple[int, np.n
     return best
 
 
-def _baseline_length(state: MapperState, i: int, R: np.ndarray, t0: np.ndarray, d: np.ndarray):
-    """(length, inlier count, points seen) of the baseline along ``d`` for image ``i`` with
-    rotation ``R``: its translation is ``t0 + length * d``."""
-    rows, X = state.visible_points(i)
-    if len(rows) < MIN_SCALE_POINTS:
-        return None
+def _baseline_length(state: MapperState, i: int, rows: np.ndarray, X: np.ndarray, R: np.ndarray,
+                     t0: np.ndarray, d: np.ndarray):
+    """(length, inlier count) of the baseline along ``d`` for image ``i`` with rotation ``R``
+    (its translation is ``t0 + length * d``) from the points ``X`` it sees in ``rows``."""
     x = np.column_stack([state.obs_norm[rows], np.ones(len(rows))])
     a = X @ R.T + t0
     c, e = np.cross(x, a), np.cross(x, np.broadcast_to(d, a.shape))  # x × (a + s d) = 0
@@ -65,7 +64,7 @@ def _baseline_length(state: MapperState, i: int, R: np.ndarray, t0: np.ndarray, 
         return None
     length = float(np.median(s[s > 0]))
     for attempt in range(3):  # the median of all positive estimates, then of the inliers twice
-        xc = X @ R.T + t0 + length * d
+        xc = a + length * d
         with np.errstate(divide="ignore", invalid="ignore"):
             err = np.linalg.norm(xc[:, :2] / xc[:, 2:] - x[:, :2], axis=1) * state.focal(i)
         inliers = (xc[:, 2] > 0) & (err < state.opts.max_reproj_error)
@@ -73,7 +72,7 @@ def _baseline_length(state: MapperState, i: int, R: np.ndarray, t0: np.ndarray, 
             return None
         if attempt < 2:
             length = float(np.median(s[inliers]))
-    return length, int(inliers.sum()), len(rows)  # the length these inliers were counted at
+    return length, int(inliers.sum())  # the length these inliers were counted at
 
 
 def register_structureless(state: MapperState, relative_pose) -> bool:
@@ -84,7 +83,8 @@ def register_structureless(state: MapperState, relative_pose) -> bool:
     neighbours = _best_registered_neighbours(state)
     for i in sorted(neighbours, key=lambda k: (-len(neighbours[k][1]), k)):
         j, m = neighbours[i]
-        seen = len(state.visible_points(i)[0])
+        rows, X = state.visible_points(i)
+        seen = len(rows)
         if not MIN_SCALE_POINTS <= seen < opts.abs_pose_min_num_inliers:
             continue  # no baseline length to be had, or an image for PnP (which decides it)
         if seen <= 1.2 * state.structureless_failed.get(i, -1):
@@ -95,13 +95,13 @@ def register_structureless(state: MapperState, relative_pose) -> bool:
             continue
         R_rel, t_rel, _ = rel
         R = R_rel @ state.R[j]
-        found = _baseline_length(state, i, R, R_rel @ state.t[j], t_rel)
-        if found is None or found[1] < opts.abs_pose_min_inlier_ratio * found[2]:
+        found = _baseline_length(state, i, rows, X, R, R_rel @ state.t[j], t_rel)
+        if found is None or found[1] < opts.abs_pose_min_inlier_ratio * seen:
             state.structureless_failed[i] = seen
             continue
-        length, n_inliers, n_seen = found
+        length, n_inliers = found
         log.debug("%s: %s registered without PnP: from %s's essential matrix (%d inliers) and %d of %d points",
-                  state.payload.label, state.names[i], state.names[j], int(rel[2].sum()), n_inliers, n_seen)
+                  state.payload.label, state.names[i], state.names[j], int(rel[2].sum()), n_inliers, seen)
         state.register(i, R, R_rel @ state.t[j] + length * t_rel)
         return True
     return False
