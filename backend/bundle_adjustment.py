@@ -201,18 +201,32 @@ def _calibration_params(values, key: int, cameras: tuple, group: int, refine: st
     return params_from_ds2(model, ds2)
 
 
-def _add_projection_factors(graph, values, cameras, obs, groups, noise, refine: str) -> None:
-    """One projection factor per observation; calibration variables when intrinsics move."""
+def _noise_per_observation(options: BAOptions, obs_sigma: Array | None, num_obs: int) -> list:
+    """The robust noise model of every observation; one model per distinct sigma (rounded to
+    0.01 px), shared by the factors that use it."""
+    if obs_sigma is None:
+        return [robust_noise(options.loss, options.loss_scale)] * num_obs
+    sigma = np.round(np.asarray(obs_sigma, float), 2)
+    if sigma.shape != (num_obs,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError(f"obs_sigma must hold {num_obs} positive finite values")
+    levels, index = np.unique(sigma, return_inverse=True)
+    models = [robust_noise(options.loss, options.loss_scale, float(s)) for s in levels]
+    return [models[k] for k in index.ravel().tolist()]
+
+
+def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, refine: str) -> None:
+    """One projection factor per observation (``noise[m]`` its noise model); calibration
+    variables when intrinsics move."""
     camera_models, camera_params, image_camera = cameras
     obs_image, obs_point, obs_xy = obs
     obs_camera = image_camera[obs_image].tolist()
-    rows = zip(obs_image.tolist(), obs_point.tolist(), obs_camera, obs_xy)
+    rows = zip(obs_image.tolist(), obs_point.tolist(), obs_camera, obs_xy, noise)
     if refine == "none":  # no calibration variables: projection factors with constant Cal3DS2
         cals = {
             g: gtsam.Cal3DS2(*ds2_from_params(camera_models[g], camera_params[g])) for g in groups
         }
-        for i, j, g, xy in rows:
-            graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, noise, X(i), L(j), cals[g]))
+        for i, j, g, xy, nm in rows:
+            graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, nm, X(i), L(j), cals[g]))
         return
     factor = {}  # one calibration variable per group, shared by its observations
     for g in groups:
@@ -221,8 +235,8 @@ def _add_projection_factors(graph, values, cameras, obs, groups, noise, refine: 
         factor[g] = (
             gtsam.GeneralSFMFactor2Cal3Bundler if bundler else gtsam.GeneralSFMFactor2Cal3DS2
         )
-    for i, j, g, xy in rows:
-        graph.add(factor[g](xy, noise, X(i), L(j), K(g)))
+    for i, j, g, xy, nm in rows:
+        graph.add(factor[g](xy, nm, X(i), L(j), K(g)))
 
 
 def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions) -> None:
@@ -258,12 +272,16 @@ def bundle_adjust(
     obs_point: Array,
     obs_xy: Array,
     options: BAOptions = BAOptions(),
+    obs_sigma: Array | None = None,
 ) -> BAResult:
     """Jointly refine poses, points and (optionally) per-group intrinsics (robust LM, GTSAM).
 
     ``camera_models`` (G,) names and ``camera_params`` (G,) vectors per group; ``image_camera``
     (N,) group of each image; ``rotations`` (N,3,3) and ``translations`` (N,3) cam_from_world;
     ``points`` (P,3); observations ``obs_image`` (M,), ``obs_point`` (M,), ``obs_xy`` (M,2).
+    ``obs_sigma`` (M,): each observation's standard deviation in pixels (None: 1 px each); the
+    robust loss acts on the whitened error, so an observation's loss scale is
+    ``options.loss_scale`` times its sigma.  Errors reported stay in pixels.
     Images, points and groups without observations are returned unchanged.
     """
     start = time.perf_counter()
@@ -283,7 +301,7 @@ def bundle_adjust(
         values.insert(X(i), poses[i])
     for j in seen_points.tolist():
         values.insertPoint3(L(j), points[j])
-    noise = robust_noise(options.loss, options.loss_scale)
+    noise = _noise_per_observation(options, obs_sigma, len(obs_image))
     _add_projection_factors(graph, values, cameras, obs, groups, noise, refine)
     _add_gauge(graph, values, poses, observed, options)
     optimizer = lm_optimizer(graph, values, options)

@@ -26,9 +26,10 @@ if TYPE_CHECKING:
 logger = logging.getLogger("backend.bundle_adjustment")
 
 
-def robust_noise(loss: str, scale: float) -> gtsam.noiseModel.Base:
-    """Isotropic 1 px measurement noise wrapped in the robust loss (scale in pixels)."""
-    base = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
+def robust_noise(loss: str, scale: float, sigma: float = 1.0) -> gtsam.noiseModel.Base:
+    """Isotropic ``sigma`` px measurement noise wrapped in the robust loss, whose ``scale``
+    applies to the whitened error (``scale * sigma`` pixels)."""
+    base = gtsam.noiseModel.Isotropic.Sigma(2, float(sigma))
     estimators = {
         "huber": gtsam.noiseModel.mEstimator.Huber,
         "cauchy": gtsam.noiseModel.mEstimator.Cauchy,

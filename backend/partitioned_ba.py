@@ -71,17 +71,18 @@ def _chordal_mean(rotations: np.ndarray) -> np.ndarray:
 
 def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotations, translations, points,
                               obs_image, obs_point, obs_xy, num_parts: int, options: BAOptions = BAOptions(),
-                              seed: int = 0) -> BAResult:
+                              seed: int = 0, obs_sigma: np.ndarray | None = None) -> BAResult:
     """:func:`backend.bundle_adjustment.bundle_adjust` over ``num_parts`` random disjoint parts
     of the points, averaged (see the module docstring); same arguments and result layout.
-    Images seen by no part and the poses in ``options.fixed_poses`` are returned as given."""
+    Images seen by no part and the poses in ``options.fixed_poses`` are returned as given;
+    ``obs_sigma`` as in ``bundle_adjust``."""
     start = time.perf_counter()
     obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
     rotations, translations = np.asarray(rotations, float), np.asarray(translations, float)
     points, obs_xy, image_camera = np.asarray(points, float), np.asarray(obs_xy, float), np.asarray(image_camera)
     if num_parts <= 1:
         return bundle_adjust(camera_models, camera_params, image_camera, rotations, translations, points,
-                             obs_image, obs_point, obs_xy, options)
+                             obs_image, obs_point, obs_xy, options, obs_sigma)
     seen = np.unique(obs_point)
     part_of_point = np.full(len(points), -1)
     part_of_point[np.random.default_rng(seed).permutation(seen)] = np.arange(len(seen)) % num_parts
@@ -95,7 +96,8 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
     for k in range(num_parts):
         mask = part_of_point[obs_point] == k
         res = bundle_adjust(camera_models, camera_params, image_camera, rotations, translations, points,
-                            obs_image[mask], obs_point[mask], obs_xy[mask], options)
+                            obs_image[mask], obs_point[mask], obs_xy[mask], options,
+                            None if obs_sigma is None else np.asarray(obs_sigma)[mask])
         observed = np.zeros(n, dtype=bool)
         observed[obs_image[mask]] = True
         rot_sum[observed] += res.rotations[observed]

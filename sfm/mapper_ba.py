@@ -82,7 +82,7 @@ class BundleAdjustmentSteps:
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
             BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
                       refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance),
-            seed=self.opts.seed,
+            seed=self.opts.seed, obs_sigma=self.obs_sigma[rows],
         )
         self.R[order[:n_free]] = result.rotations[:n_free]
         self.t[order[:n_free]] = result.translations[:n_free]

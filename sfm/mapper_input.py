@@ -28,7 +28,8 @@ class CameraPrior:
 @dataclass(frozen=True)
 class MapperInput:
     """One cluster's payload.  Image ``k`` has database id ``image_ids[k]``, name ``names[k]``,
-    camera ``camera_ids[k]`` (a key of ``cameras``) and keypoints ``keypoints[k]`` (K_k, 2);
+    camera ``camera_ids[k]`` (a key of ``cameras``) and keypoints ``keypoints[k]`` (K_k, 2), or
+    (K_k, 3) whose third column is each keypoint's detection scale in pixels (the BA weighs by it);
     ``pairs`` lists ``(k1, k2, inlier_matches (M,2), config)`` with local indices k1 < k2."""
 
     image_ids: list[int]
@@ -67,7 +68,13 @@ class MapperOptions:
     refine_given_intrinsics: also refine intrinsics given with --intrinsics (held fixed
         otherwise).
     loss: one of huber|cauchy|none, the robust loss of every BA, scale ``loss_scale`` pixels.
-    loss_scale: scale of the robust loss in pixels.
+    loss_scale: scale of the robust loss in pixels (times the observation's sigma).
+    scale_weights: weigh each observation in bundle adjustment by its keypoint's detection scale:
+        standard deviation ``max(1, scale / 0.8)`` px (``sfm.sift.localization_sigma``: SIFT's
+        positional error grows with its scale, the finest level counts as 1 px).  Keypoints
+        without a scale count 1 px.  temple_ring mapped with the GT intrinsics: AUC@1 0.728 ->
+        0.817, median rotation error 0.164 -> 0.090 deg (its large-scale blobs on the plaster
+        locate poorly); lund_door 0.958 -> 0.959.  Off: every observation 1 px (COLMAP's choice).
     ba_max_observations: the most observations one GTSAM bundle adjustment holds (GTSAM needs
         about 1.2-1.7 KB each while it optimises: 1.5 GB at the default 1,000,000).  A final
         global BA over more is the consensus of BAs over random disjoint parts of the tracks,
@@ -95,6 +102,7 @@ class MapperOptions:
     refine_given_intrinsics: bool = False
     loss: str = "huber"
     loss_scale: float = 1.0
+    scale_weights: bool = True
     ba_max_observations: int = 1_000_000
     min_model_size: int = 3
     max_num_models: int = 50

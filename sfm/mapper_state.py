@@ -17,6 +17,7 @@ import numpy as np
 from sfm.camera_models import project, unproject
 from sfm.mapper_ba import _TRIANGULATION_ROWS, BundleAdjustmentSteps, _gather
 from sfm.mapper_input import MapperInput, MapperOptions
+from sfm.sift import localization_sigma
 from sfm.tracks import build_tracks, work_cuts
 from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
 
@@ -53,9 +54,13 @@ class MapperState(BundleAdjustmentSteps):
         bounds = np.searchsorted(self.obs_image[order], np.arange(n + 1))
         self.image_rows = [order[bounds[i] : bounds[i + 1]] for i in range(n)]
         self.obs_px = np.zeros((len(self.obs_image), 2))
+        self.obs_sigma = np.ones(len(self.obs_image))  # pixel std of each row in BA
         for i, rows in enumerate(self.image_rows):
             if len(rows):
-                self.obs_px[rows] = np.asarray(payload.keypoints[i], dtype=np.float64)[self.obs_kp[rows], :2]
+                kp = np.asarray(payload.keypoints[i], dtype=np.float64)[self.obs_kp[rows]]
+                self.obs_px[rows] = kp[:, :2]
+                if opts.scale_weights and kp.shape[1] == 3:
+                    self.obs_sigma[rows] = localization_sigma(kp[:, 2])
         self.obs_norm = np.zeros_like(self.obs_px)
         self._update_normalised()
         self.num_tracks = tracks.num_tracks

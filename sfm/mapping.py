@@ -26,6 +26,7 @@ from sfm.executors import LocalExecutor
 from sfm.mapper_input import CameraPrior, MapperInput, MapperOptions
 from sfm.model import Reconstruction
 from sfm.recording import Recorder, log_model
+from sfm.sift import keypoint_scales
 from sfm.stages import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.workspace import CLUSTERS, DATABASE, read_json, update_report
 
@@ -79,9 +80,16 @@ class ClusterPayloads(Sequence[MapperInput]):
         del geoms
         return MapperInput(
             image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],
-            cameras=cameras, keypoints=[keypoints.pop(i, np.zeros((0, 2)))[:, :2].astype(np.float64) for i in ids],
+            cameras=cameras, keypoints=[_with_scale(keypoints.pop(i, np.zeros((0, 2)))) for i in ids],
             pairs=pairs, label=self.labels[k],
         )
+
+
+def _with_scale(keypoints: np.ndarray) -> np.ndarray:
+    """A database keypoint table as the payload's (K, 2) pixels, or (K, 3) pixels and scale."""
+    scales = keypoint_scales(keypoints)
+    xy = np.asarray(keypoints, np.float64)[:, :2]
+    return xy if scales is None else np.column_stack([xy, scales])
 
 
 def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,

@@ -3,7 +3,8 @@
 Pure array functions, no OpenCV objects: :func:`strongest_locations` applies COLMAP's meaning
 of ``max_num_features`` (keypoint locations, each with up to ``MAX_ORIENTATIONS``
 descriptors) to OpenCV's output, where every orientation is a keypoint of its own;
-:func:`quantize_descriptors` is COLMAP's RootSIFT-to-bytes conversion.
+:func:`quantize_descriptors` is COLMAP's RootSIFT-to-bytes conversion; :func:`keypoint_scales`
+and :func:`localization_sigma` give bundle adjustment each keypoint's positional uncertainty.
 """
 
 from __future__ import annotations
@@ -12,6 +13,9 @@ import numpy as np
 
 # Orientations one keypoint location keeps (COLMAP's SiftExtraction.max_num_orientations).
 MAX_ORIENTATIONS = 2
+# Scale (Gaussian sigma, pixels) of SIFT's finest level when the image is doubled first (OpenCV's
+# and COLMAP's default first octave -1): the base sigma 1.6 halved.
+FINEST_SCALE = 0.8
 
 
 def strongest_locations(locations: np.ndarray, response: np.ndarray, max_locations: int,
@@ -48,3 +52,27 @@ def quantize_descriptors(descriptors: np.ndarray, root_sift: bool = True) -> np.
         l2 = np.linalg.norm(d, axis=1, keepdims=True)
         d = d / np.where(l2 > 0, l2, 1.0)
     return np.minimum(np.round(512.0 * d), 255.0).astype(np.uint8)
+
+
+def keypoint_scales(keypoints: np.ndarray) -> np.ndarray | None:
+    """Detection scale (Gaussian sigma, pixels) of each keypoint row: column 2 of the
+    ``(x, y, scale, orientation)`` layout, ``sqrt(|det A|)`` of COLMAP's affine
+    ``(x, y, a11, a12, a21, a22)`` layout; None for bare ``(x, y)`` rows."""
+    kp = np.asarray(keypoints, np.float64)
+    if kp.ndim != 2 or kp.shape[1] not in (4, 6):
+        return None
+    if kp.shape[1] == 4:
+        return kp[:, 2].copy()
+    return np.sqrt(np.abs(kp[:, 2] * kp[:, 5] - kp[:, 3] * kp[:, 4]))
+
+
+def localization_sigma(scales: np.ndarray) -> np.ndarray:
+    """Standard deviation (pixels) of a keypoint's position from its detection scale:
+    ``max(1, scale / FINEST_SCALE)``.  A SIFT extremum is located by a quadratic fit on a grid
+    whose spacing, like the blob itself, grows with the scale, so its positional error grows in
+    proportion to the scale (ORB-SLAM weighs its observations by pyramid level the same way);
+    the finest level counts as 1 px.  Unknown (non-finite or non-positive) scales count as
+    1 px."""
+    s = np.asarray(scales, np.float64)
+    ok = np.isfinite(s) & (s > 0)
+    return np.where(ok, np.maximum(1.0, np.where(ok, s, 0.0) / FINEST_SCALE), 1.0)

@@ -70,3 +70,34 @@ def test_the_local_pool_reads_payloads_as_workers_free_up(scene):
         assert result.error is None and result.models
         assert payloads.read - len(seen) <= 2 * workers  # never more than two per worker in flight
     assert sorted(seen) == list(range(len(clusters))) and payloads.read == len(clusters)
+
+
+def test_keypoint_scales_reach_the_mapper_as_observation_sigmas(scene, tmp_path):
+    """A database keypoint table with scales gives (K, 3) payload keypoints, and the mapper
+    weighs each observation by ``localization_sigma`` of its scale unless told not to."""
+    import shutil
+
+    from sfm.database import Database
+    from sfm.mapper_state import MapperState
+
+    db = tmp_path / "database.db"
+    shutil.copy(scene[0], db)
+    with Database(db) as d:
+        image_id = d.image_id_by_name()[scene[1][3]]
+        xy = d.read_keypoints(image_id)[:, :2]
+        scales = np.linspace(0.5, 6.0, len(xy))
+        d.write_keypoints(image_id, np.column_stack([xy, scales, np.zeros(len(xy))]).astype(np.float32))
+    [payload] = load_payloads(db, None, True, 15)
+    k = payload.names.index(scene[1][3])
+    assert payload.keypoints[k].shape == (len(xy), 3)
+    np.testing.assert_allclose(payload.keypoints[k][:, 2], scales.astype(np.float32))
+    assert all(p.shape[1] == 2 for j, p in enumerate(payload.keypoints) if j != k)
+    state = MapperState(payload, MapperOptions())
+    rows = state.image_rows[k]
+    assert len(rows) > 100
+    expected = np.maximum(1.0, scales.astype(np.float32)[state.obs_kp[rows]] / 0.8)
+    np.testing.assert_allclose(state.obs_sigma[rows], expected, rtol=1e-6)
+    others = np.setdiff1d(np.arange(len(state.obs_sigma)), rows)
+    assert np.all(state.obs_sigma[others] == 1.0)
+    plain = MapperState(payload, MapperOptions(scale_weights=False))
+    assert np.all(plain.obs_sigma == 1.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.sift import strongest_locations
+from sfm.sift import keypoint_scales, localization_sigma, strongest_locations
 
 
 def test_strongest_locations_counts_locations_not_orientations():
@@ -20,3 +20,19 @@ def test_strongest_locations_counts_locations_not_orientations():
     assert strongest_locations(locations, response, 1, 1).tolist() == [0]
     assert strongest_locations(locations, response, 10, 4).tolist() == [0, 2, 4, 1, 5, 3, 6]
     assert strongest_locations(np.zeros((0, 3)), np.zeros(0), 5).tolist() == []
+
+
+def test_keypoint_scales_from_each_layout():
+    xy = np.array([[10.0, 20.0], [30.0, 40.0]])
+    assert keypoint_scales(xy) is None
+    four = np.column_stack([xy, [0.8, 3.2], [0.5, 1.0]])  # x, y, scale, orientation
+    np.testing.assert_array_equal(keypoint_scales(four), [0.8, 3.2])
+    # COLMAP's affine shape: A = s R(theta), so sqrt|det A| = s whatever the angle
+    s, th = np.array([1.5, 4.0]), np.array([0.3, -2.0])
+    affine = np.column_stack([xy, s * np.cos(th), -s * np.sin(th), s * np.sin(th), s * np.cos(th)])
+    np.testing.assert_allclose(keypoint_scales(affine), s, rtol=1e-12)
+
+
+def test_localization_sigma_grows_with_scale_from_the_finest_level():
+    scales = np.array([0.5, 0.8, 1.6, 3.2, 12.8, 0.0, -1.0, np.nan, np.inf])
+    np.testing.assert_allclose(localization_sigma(scales), [1, 1, 2, 4, 16, 1, 1, 1, 1])
