@@ -1,8 +1,8 @@
 """Which SIFT keypoints an image keeps, and how descriptors are stored (``sfm.features``).
 
-Pure array functions, no OpenCV objects: :func:`strongest_locations` applies COLMAP's meaning
-of ``max_num_features`` (keypoint locations, each with up to ``MAX_ORIENTATIONS``
-descriptors) to OpenCV's output, where every orientation is a keypoint of its own;
+Pure array functions, no OpenCV objects: :func:`top_locations` applies COLMAP's meaning of
+``max_num_features`` (keypoint locations, each with up to ``MAX_ORIENTATIONS`` descriptors) to
+OpenCV's output, where every orientation is a keypoint of its own;
 :func:`quantize_descriptors` is COLMAP's RootSIFT-to-bytes conversion; :func:`keypoint_scales`
 and :func:`localization_sigma` give bundle adjustment each keypoint's positional uncertainty.
 """
@@ -18,15 +18,15 @@ MAX_ORIENTATIONS = 2
 FINEST_SCALE = 0.8
 
 
-def strongest_locations(locations: np.ndarray, response: np.ndarray, max_locations: int,
-                        max_orientations: int = MAX_ORIENTATIONS) -> np.ndarray:
-    """Indices of the keypoints to keep, strongest response first: those of the
-    ``max_locations`` strongest locations (rows of ``locations`` that are equal, e.g. x, y,
-    size, are one location seen at several orientations), at most ``max_orientations`` per
-    location: the first in order of response (OpenCV gives a location's orientations the same
-    response, so the first in OpenCV's order).  ``locations`` may hold fewer than
+def top_locations(locations: np.ndarray, score: np.ndarray, max_locations: int,
+                  max_orientations: int = MAX_ORIENTATIONS) -> np.ndarray:
+    """Indices of the keypoints to keep, highest score first (the SIFT response, or the scale):
+    those of the ``max_locations`` best locations (rows of ``locations`` that are equal, e.g.
+    x, y, size, are one location seen at several orientations), at most ``max_orientations``
+    per location: the first in order of score (OpenCV gives a location's orientations the same
+    response and size, so the first in OpenCV's order).  ``locations`` may hold fewer than
     ``max_locations`` distinct rows; then all of them count."""
-    order = np.argsort(-np.asarray(response), kind="stable")
+    order = np.argsort(-np.asarray(score), kind="stable")
     if len(order) == 0:
         return order
     _, first, location = np.unique(np.asarray(locations)[order], axis=0, return_index=True, return_inverse=True)

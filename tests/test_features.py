@@ -73,6 +73,27 @@ def test_keypoints_keep_scale_and_orientation_conventions():
     assert np.mean(same_scale & (np.abs(dtheta) < 0.1)) > 0.6
 
 
+def test_max_num_features_keeps_the_largest_scale_locations_by_default():
+    """COLMAP's rule: of all detections, the locations kept are the largest-scale ones (every
+    dropped location is finer than every kept one), each with its descriptors as detected;
+    ``keep_features="strongest"`` keeps the highest responses instead, another set."""
+    img = cv2.cvtColor(textured(400, 400, 7), cv2.COLOR_BGR2GRAY)
+    everything, all_desc = extract_features(img, ExtractOptions(max_num_features=100_000))
+    kept, desc = extract_features(img, ExtractOptions(max_num_features=60))
+    strongest, _ = extract_features(img, ExtractOptions(max_num_features=60, keep_features="strongest"))
+    locations = lambda kp: {tuple(np.round(r[:3], 3)) for r in kp}  # noqa: E731
+    assert len(locations(everything)) > 200 and len(locations(kept)) == 60
+    assert locations(kept) <= locations(everything)
+    dropped = locations(everything) - locations(kept)
+    assert min(r[2] for r in locations(kept)) >= max(r[2] for r in dropped)
+    assert len(locations(strongest)) == 60 and locations(strongest) != locations(kept)
+    index = {tuple(np.round(r, 4)): k for k, r in enumerate(everything)}
+    same = [index[tuple(np.round(r, 4))] for r in kept]
+    np.testing.assert_array_equal(desc, all_desc[same])
+    with pytest.raises(ValueError, match="keep_features"):
+        ExtractOptions(keep_features="random")
+
+
 # ------------------------------------------------------------------------- downscaling
 def test_downscaled_keypoints_map_to_full_resolution(tmp_path):
     """A 2x pixel-replicated image shrunk back by INTER_AREA is the original exactly, so its
