@@ -134,10 +134,12 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
     return False
 
 
-def _register_next(state: MapperState) -> bool:
-    """Register the best unregistered image that PnP accepts; False when none can be."""
+def _register_next(state: MapperState, stalled: bool = False) -> bool:
+    """Register the best unregistered image that PnP accepts; False when none can be.
+    ``stalled``: also retry images that failed before and see any more points since (see
+    ``MapperState.next_image_candidates``)."""
     opts = state.opts
-    for i in state.next_image_candidates():
+    for i in state.next_image_candidates(stalled):
         rows, X = state.visible_points(i)
         if len(rows) < opts.abs_pose_min_num_inliers:
             break  # candidates are sorted by visible points
@@ -177,7 +179,10 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
             break
         last_global = state.num_registered
         log_progress(state, recorder)
-        while _register_next(state) or register_structureless(state, _relative_pose):
+        # A failed image is retried once it sees 20% more points (cheap on large clusters);
+        # before giving up, once more with any growth, then without PnP.
+        while (_register_next(state) or _register_next(state, stalled=True)
+               or register_structureless(state, _relative_pose)):
             state.triangulate_new(state.last_registered)
             if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= 10:
                 state.global_ba()  # covers what the local BA would adjust

@@ -159,16 +159,18 @@ class MapperState(BundleAdjustmentSteps):
         self.global_ba()
 
     # ------------------------------------------------------------------ registration
-    def next_image_candidates(self) -> list[int]:
+    def next_image_candidates(self, stalled: bool = False) -> list[int]:
         """Unregistered images ordered by how many triangulated points they see and how well
         spread those are (distinct cells of a 16 x 16 grid), retrying failed ones only once
-        they see 20% more points than at their last failure."""
+        they see 20% more points than at their last failure, or, when ``stalled`` (nothing
+        else registers), any more points at all."""
         scored = []
+        growth = 1.0 if stalled else 1.2
         for i in np.flatnonzero(~self.registered & ~self.used):
             vis, _ = self.visible_points(i)
             if len(vis) < self.opts.abs_pose_min_num_inliers:
                 continue
-            if self.failed[i] and len(vis) <= 1.2 * self.fail_visible[i]:
+            if self.failed[i] and len(vis) <= growth * self.fail_visible[i]:
                 continue
             prior = self.camera_of(i)
             cells = np.unique((self.obs_px[vis] // [prior.width / 16, prior.height / 16]) @ [1, 16])

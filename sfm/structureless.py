@@ -5,9 +5,10 @@ In forward motion (a street walked along) a new view shares most of its matches 
 registered view, whose points are not triangulated yet: no candidate sees
 ``abs_pose_min_num_inliers`` triangulated points, PnP cannot start, and the model stops.
 COLMAP 4 then registers from 2D-2D correspondences (``structure_less_registration_fallback``,
-on by default).  Here, for the images PnP could not try (fewer than
-``abs_pose_min_num_inliers`` points seen; an image that failed here is retried once it sees
-20% more): the essential matrix of the image with its best registered neighbour gives the
+on by default).  Here, once PnP registers nothing, for the images PnP could not try (fewer
+than ``abs_pose_min_num_inliers`` points seen) or tried and failed on (a view that sees a few
+dozen points of a low-parallax pair may find fewer PnP inliers than it needs); an image that
+failed here is retried once it sees 20% more: the essential matrix of the image with its best registered neighbour gives the
 rotation and the direction of the baseline; its one missing degree of freedom, the
 baseline's length, comes from the few triangulated points the image does see (each point gives
 a 1-D estimate; their median, then again over the inliers).  Accepted when the essential matrix
@@ -85,8 +86,8 @@ def register_structureless(state: MapperState, relative_pose) -> bool:
         j, m = neighbours[i]
         rows, X = state.visible_points(i)
         seen = len(rows)
-        if not MIN_SCALE_POINTS <= seen < opts.abs_pose_min_num_inliers:
-            continue  # no baseline length to be had, or an image for PnP (which decides it)
+        if seen < MIN_SCALE_POINTS or (seen >= opts.abs_pose_min_num_inliers and not state.failed[i]):
+            continue  # no baseline length to be had, or an image PnP has yet to try
         if seen <= 1.2 * state.structureless_failed.get(i, -1):
             continue  # failed here before, and sees hardly more points now
         rel = relative_pose(state, j, i, m, opts.seed + i)

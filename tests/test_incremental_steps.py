@@ -117,3 +117,44 @@ def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
     assert started == [(1, 2)]
     assert calls == [(0, 1), (0, 2), (1, 2)]
 
+
+
+def test_a_stalled_model_retries_failed_images_that_see_any_more_points(tmp_path):
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=4))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    assert _try_initial_pair(state, set())
+    k = state.next_image_candidates()[0]
+    seen = len(state.visible_points(k)[0])
+    state.note_failure(k, seen - 1)  # failed when it saw one point fewer
+    assert k not in state.next_image_candidates()  # 20% more needed
+    assert k in state.next_image_candidates(stalled=True)  # any growth, once stalled
+    state.note_failure(k, seen)
+    assert k not in state.next_image_candidates(stalled=True)
+
+
+def test_only_the_final_bundle_adjustments_weigh_by_keypoint_scale(tmp_path, monkeypatch):
+    """Growing BAs keep unit weights (the registration chain stays COLMAP's); the final BAs
+    get each observation's sigma from its keypoint scale."""
+    import sfm.mapper_ba as mapper_ba
+    from sfm.mapper_input import MapperInput
+
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=12, observations_per_image=500, seed=6))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    rng = np.random.default_rng(0)
+    scaled = [np.column_stack([kp, rng.uniform(0.5, 4.0, len(kp))]) for kp in payload.keypoints]
+    payload = MapperInput(**{**payload.__dict__, "keypoints": scaled})
+    seen = []
+    original = mapper_ba.bundle_adjust_partitioned
+
+    def spy(*args, obs_sigma=None, **kwargs):
+        seen.append(obs_sigma)
+        return original(*args, obs_sigma=obs_sigma, **kwargs)
+
+    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
+    [model] = incremental.reconstruct_incremental(payload, MapperOptions())
+    assert len(model.images) == 12
+    weighted = [s for s in seen if s is not None]
+    assert 1 <= len(weighted) <= 2 and seen[-len(weighted):] == weighted  # the final BA(s)
+    assert len(seen) > len(weighted) + 5
+    assert all(np.all(s >= 1.0) and s.max() > 4.0 for s in weighted)
