@@ -94,6 +94,22 @@ def test_max_num_features_keeps_the_largest_scale_locations_by_default():
         ExtractOptions(keep_features="random")
 
 
+def test_describing_all_or_only_the_kept_keypoints_gives_the_same_features(monkeypatch):
+    """Small images describe every detection, large ones only the kept keypoints (a second
+    pyramid): the same keypoints and descriptors either way."""
+    import sfm.features as features
+
+    img = cv2.cvtColor(textured(400, 400, 7), cv2.COLOR_BGR2GRAY)
+    opts = ExtractOptions(max_num_features=80)
+    monkeypatch.setattr(features, "DESCRIBE_ALL_PIXELS", 10**9)
+    kp_all, desc_all = features.detect_sift(img, opts)
+    monkeypatch.setattr(features, "DESCRIBE_ALL_PIXELS", 0)
+    kp_kept, desc_kept = features.detect_sift(img, opts)
+    assert len(kp_all) >= 80
+    np.testing.assert_array_equal(kp_kept, kp_all)
+    np.testing.assert_array_equal(desc_kept, desc_all)
+
+
 # ------------------------------------------------------------------------- downscaling
 def test_downscaled_keypoints_map_to_full_resolution(tmp_path):
     """A 2x pixel-replicated image shrunk back by INTER_AREA is the original exactly, so its
