@@ -66,7 +66,8 @@ class BAOptions:
     """Options of :func:`bundle_adjust`.
 
     loss, loss_scale: robust loss on each observation's pixel error, "huber" (default),
-        "cauchy" or "none", with its scale in pixels (default 1.0). Huber at 1 px is the GTSAM
+        "cauchy" or "none", with its scale in pixels (default 1.0; times the observation's
+        sigma when ``bundle_adjust`` is given sigmas). Huber at 1 px is the GTSAM
         analogue of COLMAP's local-BA soft-L1 at scale 1: quadratic core, linear tails, convex
         (so no new local minima), yet a 50 px outlier pulls 50x less than under least squares.
         "none" is COLMAP's global-BA default, right when outliers were already filtered.
@@ -202,14 +203,15 @@ def _calibration_params(values, key: int, cameras: tuple, group: int, refine: st
 
 
 def _noise_per_observation(options: BAOptions, obs_sigma: Array | None, num_obs: int) -> list:
-    """The robust noise model of every observation; one model per distinct sigma (rounded to
-    0.01 px), shared by the factors that use it."""
+    """The robust noise model of every observation; one model per distinct sigma (in steps
+    of 0.5%), shared by the factors that use it."""
     if obs_sigma is None:
         return [robust_noise(options.loss, options.loss_scale)] * num_obs
-    sigma = np.round(np.asarray(obs_sigma, float), 2)
+    sigma = np.asarray(obs_sigma, float)
     if sigma.shape != (num_obs,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
         raise ValueError(f"obs_sigma must hold {num_obs} positive finite values")
-    levels, index = np.unique(sigma, return_inverse=True)
+    levels, index = np.unique(np.round(np.log(sigma) / np.log1p(0.005)), return_inverse=True)
+    levels = np.exp(levels * np.log1p(0.005))
     models = [robust_noise(options.loss, options.loss_scale, float(s)) for s in levels]
     return [models[k] for k in index.ravel().tolist()]
 

@@ -80,6 +80,8 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
     obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
     rotations, translations = np.asarray(rotations, float), np.asarray(translations, float)
     points, obs_xy, image_camera = np.asarray(points, float), np.asarray(obs_xy, float), np.asarray(image_camera)
+    if obs_sigma is not None and np.shape(obs_sigma) != obs_image.shape:
+        raise ValueError(f"obs_sigma must hold {len(obs_image)} values, one per observation")
     if num_parts <= 1:
         return bundle_adjust(camera_models, camera_params, image_camera, rotations, translations, points,
                              obs_image, obs_point, obs_xy, options, obs_sigma)

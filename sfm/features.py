@@ -5,15 +5,13 @@ DESIGN.md, "The algorithm", step 1. :func:`run_extract` is the stage; :func:`ext
 
 Conventions:
 
-- Detector: OpenCV SIFT (``cv2.SIFT_create``) with OpenCV's thresholds: contrastThreshold 0.04
-  (a DoG extremum is kept when ``|D| >= 0.04 / 3`` on a [0, 1] image; COLMAP's default peak
-  threshold is half that, 0.02 / 3: it finds more, weaker keypoints in low-texture images, but
-  with the 8192 cap both keep the strongest ones in a textured photo) and edgeThreshold 10
-  (COLMAP's too). Both are options. ``enable_precise_upscale=True``: OpenCV's default doubling
-  of the image for the first octave maps upsampled pixel i to i / 2 instead of i / 2 - 0.25,
-  which biases every keypoint by +0.25 px in x and y; the precise upscale has no such bias, so
-  keypoints are in OpenCV's pixel-centre convention (a test rotates an image by 90 degrees and
-  finds 90% of the keypoints within 0.3 px of where they must be).
+- Detector: OpenCV SIFT (``cv2.SIFT_create``); contrastThreshold 0.02 is COLMAP's default peak
+  threshold (0.02 / 3 per octave layer on a [0, 1] image; OpenCV's own default is 0.04) and
+  edgeThreshold 10 COLMAP's too; both are options. ``enable_precise_upscale=True``: OpenCV's
+  default doubling of the image for the first octave maps upsampled pixel i to i / 2 instead
+  of i / 2 - 0.25, which biases every keypoint by +0.25 px in x and y; the precise upscale has
+  no such bias, so keypoints are in OpenCV's pixel-centre convention (a test rotates an image
+  by 90 degrees and finds 90% of the keypoints within 0.3 px of where they must be).
 - Images whose longer side exceeds ``max_image_size`` are shrunk with ``cv2.INTER_AREA`` before
   SIFT (SIFT never sees the full image); keypoints are mapped back to full-resolution pixels with
   OpenCV's pixel-centre convention ``x = (x_small + 0.5) * sx - 0.5`` (likewise y) and their
@@ -98,7 +96,7 @@ from sfm.intrinsics import (
     warn_unused_lines,
 )
 from sfm.process_pool import pool_context
-from sfm.sift import MAX_ORIENTATIONS, quantize_descriptors, top_locations
+from sfm.sift import detect_and_select, quantize_descriptors  # noqa: F401 (re-exported)
 from sfm.workspace import DATABASE
 
 logger = logging.getLogger(__name__)
@@ -178,48 +176,13 @@ class ExtractResult:
 
 
 # ----------------------------------------------------------------------------- library
-# Up to this many pixels SIFT describes every detection and the selection takes its rows;
-# above, it detects, selects, then describes the kept keypoints (a second Gaussian pyramid).
-# Same output either way, only the cost differs: a 640 x 480 image holds fewer locations than
-# max_num_features and a second pyramid would add a third (0.128 -> 0.171 s per image), where
-# a 2.5-megapixel photo (lund_door) detects ~4x the locations kept: describing them all adds
-# 40% (1.57 -> 2.21 s), the second pyramid 7%.
-DESCRIBE_ALL_PIXELS = 1_000_000
-
-
 def detect_sift(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:
     """SIFT on an 8-bit grey image as given: ``(keypoints (N, 4) float32 x, y, scale,
     orientation; descriptors (N, 128) uint8)``: at most ``max_num_features`` locations, each
     with at most ``MAX_ORIENTATIONS`` orientations, chosen by ``keep_features`` (module
-    docstring), in the order kept."""
-    empty = np.zeros((0, 4), np.float32), np.zeros((0, 128), np.uint8)
-    sift = cv2.SIFT_create(  # every detection: the selection below is ours
-        nfeatures=0, contrastThreshold=options.contrast_threshold,
-        edgeThreshold=options.edge_threshold, enable_precise_upscale=True,
-    )  # fmt: skip
-    small = gray.shape[0] * gray.shape[1] <= DESCRIBE_ALL_PIXELS
-    kps, desc = sift.detectAndCompute(gray, None) if small else (sift.detect(gray, None), None)
-    if not kps:
-        return empty
-    found = np.array([(k.pt[0], k.pt[1], k.size, k.response) for k in kps], np.float64)
-    score = found[:, 2] if options.keep_features == "largest_scale" else found[:, 3]
-    order = top_locations(found[:, :3], score, options.max_num_features, MAX_ORIENTATIONS)
-    if small:
-        kps, desc = [kps[i] for i in order], desc[order]
-    else:
-        # A keypoint of octave -1 makes compute() build the doubled first octave, as detection
-        # did; without one it would start from the undoubled image and blur it differently.
-        probe = cv2.KeyPoint(gray.shape[1] / 2.0, gray.shape[0] / 2.0, 1.6, 0.0, 0.0, 255 | (1 << 8))
-        kept = [kps[i] for i in order]
-        kps, desc = sift.compute(gray, kept + [probe])
-        if desc is None or len(kps) != len(kept) + 1:  # OpenCV's SIFT keeps provided keypoints
-            raise RuntimeError(f"SIFT compute returned {len(kps)} of {len(kept) + 1} keypoints")
-        kps, desc = kps[:-1], desc[:-1]
-    rows = np.array([(k.pt[0], k.pt[1], k.size, k.angle) for k in kps], np.float64)
-    keypoints = np.column_stack(
-        [rows[:, 0], rows[:, 1], rows[:, 2] / 2.0, np.deg2rad(np.mod(rows[:, 3], 360.0))]
-    ).astype(np.float32)
-    return keypoints, quantize_descriptors(desc, options.root_sift)
+    docstring; :func:`sfm.sift.detect_and_select`), in the order kept."""
+    return detect_and_select(gray, options.contrast_threshold, options.edge_threshold,
+                             options.max_num_features, options.keep_features, options.root_sift)
 
 
 def extract_features(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:

@@ -180,7 +180,8 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
         last_global = state.num_registered
         log_progress(state, recorder)
         # A failed image is retried once it sees 20% more points (cheap on large clusters);
-        # before giving up, once more with any growth, then without PnP.
+        # when nothing registers, with any growth (at most MAX_REG_TRIALS failures), then
+        # without PnP.
         while (_register_next(state) or _register_next(state, stalled=True)
                or register_structureless(state, _relative_pose)):
             state.triangulate_new(state.last_registered)

@@ -157,9 +157,10 @@ class BundleAdjustmentSteps:
             dropped.extend(images.tolist())
         if dropped:
             self._update_normalised()
-            for i in dropped:  # retried once they see 20% more points (next_image_candidates)
+            for i in dropped:  # retried once they see 20% more points (PnP and structure-less)
                 self.failed[i] += 1
                 self.fail_visible[i] = len(self.visible_points(i)[0])
+                self.structureless_failed[i] = int(self.fail_visible[i])
 
     def _ba_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most

@@ -22,7 +22,7 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
             recon.add_camera(Camera(key, prior.model, prior.width, prior.height, state.params[c].copy()))
     for i in np.flatnonzero(state.registered):
         recon.add_image(Image(state.payload.image_ids[i], state.names[i], state.cam_keys[state.cam_index[i]],
-                              state.R[i].copy(), state.t[i].copy(), np.asarray(state.payload.keypoints[i])[:, :2]))
+                              state.R[i].copy(), state.t[i].copy(), np.ascontiguousarray(np.asarray(state.payload.keypoints[i])[:, :2])))
     rows = np.flatnonzero(state.obs_inlier & state.registered[state.obs_image] & state.track_valid[state.obs_track])
     tr = state.obs_track[rows]
     order = np.argsort(tr, kind="stable")

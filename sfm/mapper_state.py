@@ -24,6 +24,7 @@ from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
 log = logging.getLogger(__name__)
 
 _ERROR_ROWS = 1_000_000  # reprojection errors computed this many rows at a time
+MAX_REG_TRIALS = 3  # failures after which a stalled model stops retrying an image (COLMAP's max_reg_trials)
 
 
 
@@ -65,10 +66,6 @@ class MapperState(BundleAdjustmentSteps):
         self._update_normalised()
         self.num_tracks = tracks.num_tracks
         self.used = np.zeros(n, dtype=bool)  # belongs to a finished model
-        self.failed = np.zeros(n, dtype=np.int64)
-        self.fail_visible = np.zeros(n, dtype=np.int64)
-        # points each image saw when structure-less registration last failed on it
-        self.structureless_failed: dict[int, int] = {}
         # de-register the images of cameras whose intrinsics became degenerate (off when no
         # registration follows, as in the refinement of merged poses)
         self.camera_filter = True
@@ -93,6 +90,11 @@ class MapperState(BundleAdjustmentSteps):
         self.obs_inlier = np.zeros(len(self.obs_image), dtype=bool)
         self.num_registered = 0
         self.last_registered = -1
+        # registration failures of this model: count and points seen at the last one (PnP),
+        # points seen when structure-less registration last failed
+        self.failed = np.zeros(n, dtype=np.int64)
+        self.fail_visible = np.zeros(n, dtype=np.int64)
+        self.structureless_failed: dict[int, int] = {}
         self.last_ba_rms = float("nan")
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self._update_normalised()
@@ -163,14 +165,16 @@ class MapperState(BundleAdjustmentSteps):
         """Unregistered images ordered by how many triangulated points they see and how well
         spread those are (distinct cells of a 16 x 16 grid), retrying failed ones only once
         they see 20% more points than at their last failure, or, when ``stalled`` (nothing
-        else registers), any more points at all."""
+        else registers), any more points, as long as they failed fewer than
+        ``MAX_REG_TRIALS`` times."""
         scored = []
         growth = 1.0 if stalled else 1.2
         for i in np.flatnonzero(~self.registered & ~self.used):
             vis, _ = self.visible_points(i)
             if len(vis) < self.opts.abs_pose_min_num_inliers:
                 continue
-            if self.failed[i] and len(vis) <= growth * self.fail_visible[i]:
+            if self.failed[i] and (len(vis) <= growth * self.fail_visible[i]
+                                   or (stalled and self.failed[i] >= MAX_REG_TRIALS)):
                 continue
             prior = self.camera_of(i)
             cells = np.unique((self.obs_px[vis] // [prior.width / 16, prior.height / 16]) @ [1, 16])

@@ -5,10 +5,11 @@ In forward motion (a street walked along) a new view shares most of its matches 
 registered view, whose points are not triangulated yet: no candidate sees
 ``abs_pose_min_num_inliers`` triangulated points, PnP cannot start, and the model stops.
 COLMAP 4 then registers from 2D-2D correspondences (``structure_less_registration_fallback``,
-on by default).  Here, once PnP registers nothing, for the images PnP could not try (fewer
-than ``abs_pose_min_num_inliers`` points seen) or tried and failed on (a view that sees a few
-dozen points of a low-parallax pair may find fewer PnP inliers than it needs); an image that
-failed here is retried once it sees 20% more: the essential matrix of the image with its best registered neighbour gives the
+on by default).  Here, once PnP registers nothing, this takes the images PnP could not try
+(fewer than ``abs_pose_min_num_inliers`` points seen) and those it tried and failed on (a
+view that sees a few dozen points of a low-parallax pair may find fewer PnP inliers than it
+needs); an image that failed here is retried once it sees 20% more points.  For each, the
+essential matrix of the image with its best registered neighbour gives the
 rotation and the direction of the baseline; its one missing degree of freedom, the
 baseline's length, comes from the few triangulated points the image does see (each point gives
 a 1-D estimate; their median, then again over the inliers).  Accepted when the essential matrix

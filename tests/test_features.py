@@ -98,12 +98,13 @@ def test_describing_all_or_only_the_kept_keypoints_gives_the_same_features(monke
     """Small images describe every detection, large ones only the kept keypoints (a second
     pyramid): the same keypoints and descriptors either way."""
     import sfm.features as features
+    import sfm.sift as sift
 
     img = cv2.cvtColor(textured(400, 400, 7), cv2.COLOR_BGR2GRAY)
     opts = ExtractOptions(max_num_features=80)
-    monkeypatch.setattr(features, "DESCRIBE_ALL_PIXELS", 10**9)
+    monkeypatch.setattr(sift, "DESCRIBE_ALL_PIXELS", 10**9)
     kp_all, desc_all = features.detect_sift(img, opts)
-    monkeypatch.setattr(features, "DESCRIBE_ALL_PIXELS", 0)
+    monkeypatch.setattr(sift, "DESCRIBE_ALL_PIXELS", 0)
     kp_kept, desc_kept = features.detect_sift(img, opts)
     assert len(kp_all) >= 80
     np.testing.assert_array_equal(kp_kept, kp_all)

@@ -75,3 +75,21 @@ def test_one_part_is_the_plain_bundle_adjustment():
     one = bundle_adjust_partitioned(**start, num_parts=1, options=OPTIONS)
     plain = bundle_adjust(**start, options=OPTIONS)
     assert np.array_equal(one.rotations, plain.rotations) and np.array_equal(one.points, plain.points)
+
+
+def test_observation_sigmas_reach_every_part():
+    """Every part weighs its observations by their own sigmas: 10% of the observations moved
+    by 20 px and given a 1000 px sigma leave the parts' mean at the truth, where equal weights
+    (no robust loss) are pulled away."""
+    truth = ring_scene(LONG_FOCAL, n_images=8, n_points=240, seed=9)
+    rng = np.random.default_rng(10)
+    bad = rng.random(len(truth["obs_xy"])) < 0.1
+    corrupted = {**truth, "obs_xy": truth["obs_xy"] + 20.0 * bad[:, None]}
+    start = perturb(corrupted, keep=(0,))
+    sigma = np.where(bad, 1000.0, 1.0)
+    weighted = bundle_adjust_partitioned(**start, num_parts=2, options=OPTIONS, obs_sigma=sigma)
+    plain = bundle_adjust_partitioned(**start, num_parts=2, options=OPTIONS)
+    assert rotation_gaps(weighted, replace_truth(truth)).max() < 0.01
+    assert rotation_gaps(plain, replace_truth(truth)).max() > 0.05
+    with pytest.raises(ValueError, match="obs_sigma"):
+        bundle_adjust_partitioned(**start, num_parts=2, options=OPTIONS, obs_sigma=sigma[:-1])
