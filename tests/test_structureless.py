@@ -51,3 +51,31 @@ def test_structureless_registration_needs_a_registered_neighbour(tmp_path):
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
     state = MapperState(payload, MapperOptions())
     assert not register_structureless(state, _relative_pose)  # nothing registered yet
+
+
+def test_structureless_registration_takes_images_pnp_failed_on_and_leaves_untried_ones(tmp_path):
+    """An image seeing enough points for PnP is left to PnP until PnP has failed on it; then
+    the fallback registers it at its true pose."""
+    run_synth(tmp_path, SynthOptions(scene="street", num_images=10, observations_per_image=600, seed=3))
+    gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    seeds = [state.names.index(n) for n in ("street_00003.jpg", "street_00006.jpg")]
+    for i in seeds:
+        state.register(i, gt[state.names[i]].rotation, gt[state.names[i]].translation)
+    state.triangulate_new(seeds[-1])
+    rich = [i for i in range(len(state.names)) if not state.registered[i]
+            and len(state.visible_points(i)[0]) >= state.opts.abs_pose_min_num_inliers]
+    assert rich
+    for i in range(len(state.names)):  # only the PnP-ready images are left
+        if not state.registered[i] and i not in rich:
+            state.used[i] = True
+    assert not register_structureless(state, _relative_pose)  # PnP has not tried them
+    k = rich[0]
+    state.note_failure(k, len(state.visible_points(k)[0]))
+    assert register_structureless(state, _relative_pose)
+    assert state.last_registered == k
+    truth = gt[state.names[k]]
+    assert _rotation_deg(state.R[k], truth.rotation) < 0.1
+    baseline = np.linalg.norm(_center(gt[state.names[seeds[0]]]) - _center(gt[state.names[seeds[1]]]))
+    assert np.linalg.norm(-state.R[k].T @ state.t[k] - _center(truth)) < 0.02 * baseline
