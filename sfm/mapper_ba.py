@@ -59,7 +59,7 @@ class BundleAdjustmentSteps:
         return rows[keep], owner[keep]
 
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
-                       tolerance: float = 1e-5, parts: int = 1, weighted: bool = False) -> None:
+                       tolerance: float = 1e-5, parts: int = 1) -> None:
         rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
@@ -82,7 +82,7 @@ class BundleAdjustmentSteps:
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
             BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
                       refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance),
-            seed=self.opts.seed, obs_sigma=self.obs_sigma[rows] if weighted else None,
+            seed=self.opts.seed, obs_sigma=self.obs_sigma[rows],
         )
         self.R[order[:n_free]] = result.rotations[:n_free]
         self.t[order[:n_free]] = result.translations[:n_free]
@@ -114,8 +114,7 @@ class BundleAdjustmentSteps:
         tracks = np.flatnonzero(self.track_valid)
         if final:
             parts = self._ba_parts(tracks)
-            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, _FINAL_TOLERANCE, parts=parts,
-                                weighted=True)
+            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, _FINAL_TOLERANCE, parts=parts)
             if parts > 1:
                 self._refine_points(tracks)
         else:

@@ -69,15 +69,13 @@ class MapperOptions:
         otherwise).
     loss: one of huber|cauchy|none, the robust loss of every BA, scale ``loss_scale`` pixels.
     loss_scale: scale of the robust loss in pixels (times the observation's sigma).
-    scale_weights: the final global BAs weigh each observation by its keypoint's detection
-        scale: standard deviation ``max(1, scale / 0.8)`` px (``sfm.sift.localization_sigma``:
-        SIFT's positional error grows with its scale, the finest level counts as 1 px);
-        keypoints without a scale count 1 px.  The BAs of the growing model keep 1 px for
-        every observation, as COLMAP's do: weighing them too registered the same images on
-        four datasets but moved opensfm_lund's low-parallax view 16 below PnP's 30 inliers
-        (15/29).  temple_ring mapped with the GT intrinsics: AUC@1 0.728 -> 0.794 (0.817 with
-        every BA weighted), median rotation error 0.164 -> 0.092 deg (its plaster gives many
-        coarse blobs that locate poorly).  Off: 1 px everywhere.
+    scale_weights: every BA weighs each observation by its keypoint's detection scale:
+        standard deviation ``max(1, scale / 0.8)`` px (``sfm.sift.localization_sigma``: SIFT's
+        positional error grows with its scale, the finest level counts as 1 px); keypoints
+        without a scale count 1 px.  temple_ring mapped with the GT intrinsics: AUC@1 0.728 ->
+        0.810, median rotation error 0.164 -> 0.105 deg (its plaster gives many coarse blobs
+        that locate poorly); the rendered demo scene 0.931 -> 0.918.  Off: 1 px everywhere
+        (COLMAP's choice).
     ba_max_observations: the most observations one GTSAM bundle adjustment holds (GTSAM needs
         about 1.2-1.7 KB each while it optimises: 1.5 GB at the default 1,000,000).  A final
         global BA over more is the consensus of BAs over random disjoint parts of the tracks,

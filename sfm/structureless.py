@@ -14,8 +14,9 @@ rotation and the direction of the baseline; its one missing degree of freedom, t
 baseline's length, comes from the few triangulated points the image does see (each point gives
 a 1-D estimate; their median, then again over the inliers).  Accepted when the essential matrix
 has at least ``abs_pose_min_num_inliers`` inliers and at least :data:`MIN_SCALE_POINTS` points,
-and ``abs_pose_min_inlier_ratio`` of those seen, reproject within ``max_reproj_error``.  The
-local BA that follows refines the pose as after any registration.
+and ``abs_pose_min_inlier_ratio`` of those seen, reproject within ``abs_pose_max_error``
+(PnP's registration threshold: the model's points carry its drift; the local BA and the
+filtering at ``max_reproj_error`` that follow any registration refine the pose).
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def _baseline_length(state: MapperState, i: int, rows: np.ndarray, X: np.ndarray
         xc = a + length * d
         with np.errstate(divide="ignore", invalid="ignore"):
             err = np.linalg.norm(xc[:, :2] / xc[:, 2:] - x[:, :2], axis=1) * state.focal(i)
-        inliers = (xc[:, 2] > 0) & (err < state.opts.max_reproj_error)
+        inliers = (xc[:, 2] > 0) & (err < state.opts.abs_pose_max_error)
         if inliers.sum() < MIN_SCALE_POINTS:
             return None
         if attempt < 2:

@@ -133,11 +133,12 @@ def test_a_stalled_model_retries_failed_images_that_see_any_more_points(tmp_path
     assert k not in state.next_image_candidates(stalled=True)
 
 
-def test_only_the_final_bundle_adjustments_weigh_by_keypoint_scale(tmp_path, monkeypatch):
-    """Growing BAs keep unit weights (the registration chain stays COLMAP's); the final BAs
-    get each observation's sigma from its keypoint scale."""
+def test_every_bundle_adjustment_weighs_by_keypoint_scale(tmp_path, monkeypatch):
+    """Local, growing global and final BAs all get each observation's sigma from its keypoint
+    scale (rows aligned with the observations they weigh); with scale weights off, none."""
     import sfm.mapper_ba as mapper_ba
     from sfm.mapper_input import MapperInput
+    from sfm.sift import localization_sigma
 
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=12, observations_per_image=500, seed=6))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
@@ -148,13 +149,17 @@ def test_only_the_final_bundle_adjustments_weigh_by_keypoint_scale(tmp_path, mon
     original = mapper_ba.bundle_adjust_partitioned
 
     def spy(*args, obs_sigma=None, **kwargs):
-        seen.append(obs_sigma)
+        seen.append((np.asarray(args[8]).copy(), obs_sigma))  # obs_xy, sigmas
         return original(*args, obs_sigma=obs_sigma, **kwargs)
 
     monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
     [model] = incremental.reconstruct_incremental(payload, MapperOptions())
-    assert len(model.images) == 12
-    weighted = [s for s in seen if s is not None]
-    assert 1 <= len(weighted) <= 2 and seen[-len(weighted):] == weighted  # the final BA(s)
-    assert len(seen) > len(weighted) + 5
-    assert all(np.all(s >= 1.0) and s.max() > 4.0 for s in weighted)
+    assert len(model.images) == 12 and len(seen) > 5
+    scale_of = {tuple(r[:2]): r[2] for kp in scaled for r in kp}  # synthetic xy are distinct
+    for xy, sigma in seen:
+        assert sigma is not None and len(sigma) == len(xy)
+        expected = localization_sigma(np.array([scale_of[tuple(p)] for p in xy]))
+        np.testing.assert_allclose(sigma, expected)
+    seen.clear()
+    incremental.reconstruct_incremental(payload, MapperOptions(scale_weights=False))
+    assert seen and all(np.all(sigma == 1.0) for _, sigma in seen)
