@@ -17,12 +17,11 @@ def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
 
 
-def test_structureless_registration_recovers_pose_and_baseline(tmp_path):
-    """Seeded with two images at their true poses and a tenth of their triangulated points
-    (too few for PnP), the images registered from an essential matrix and the points they see
-    get their true rotation and camera centre (the baseline length included)."""
+def _seeded_street(tmp_path, outlier_ratio: float):
+    """A 10-image synthetic street with images 3 and 6 registered at their true poses and
+    their points triangulated: (state, GT table, the two seed indices)."""
     run_synth(tmp_path, SynthOptions(scene="street", num_images=10, observations_per_image=600,
-                                     outlier_ratio=0.2, seed=3))  # fmt: skip
+                                     outlier_ratio=outlier_ratio, seed=3))  # fmt: skip
     gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
     state = MapperState(payload, MapperOptions())
@@ -30,6 +29,14 @@ def test_structureless_registration_recovers_pose_and_baseline(tmp_path):
     for i in seeds:
         state.register(i, gt[state.names[i]].rotation, gt[state.names[i]].translation)
     state.triangulate_new(seeds[-1])
+    return state, gt, seeds
+
+
+def test_structureless_registration_recovers_pose_and_baseline(tmp_path):
+    """Seeded with two images at their true poses and a tenth of their triangulated points
+    (too few for PnP), the images registered from an essential matrix and the points they see
+    get their true rotation and camera centre (the baseline length included)."""
+    state, gt, seeds = _seeded_street(tmp_path, outlier_ratio=0.2)
     valid = np.flatnonzero(state.track_valid)
     state.track_valid[valid[np.arange(len(valid)) % 10 != 0]] = False  # too few points for PnP
     baseline = np.linalg.norm(_center(gt[state.names[seeds[0]]]) - _center(gt[state.names[seeds[1]]]))
@@ -56,14 +63,7 @@ def test_structureless_registration_needs_a_registered_neighbour(tmp_path):
 def test_structureless_registration_takes_images_pnp_failed_on_and_leaves_untried_ones(tmp_path):
     """An image seeing enough points for PnP is left to PnP until PnP has failed on it; then
     the fallback registers it at its true pose."""
-    run_synth(tmp_path, SynthOptions(scene="street", num_images=10, observations_per_image=600, seed=3))
-    gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")
-    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
-    state = MapperState(payload, MapperOptions())
-    seeds = [state.names.index(n) for n in ("street_00003.jpg", "street_00006.jpg")]
-    for i in seeds:
-        state.register(i, gt[state.names[i]].rotation, gt[state.names[i]].translation)
-    state.triangulate_new(seeds[-1])
+    state, gt, seeds = _seeded_street(tmp_path, outlier_ratio=0.0)
     rich = [i for i in range(len(state.names)) if not state.registered[i]
             and len(state.visible_points(i)[0]) >= state.opts.abs_pose_min_num_inliers]
     assert rich
