@@ -134,15 +134,15 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
     return False
 
 
-def _register_next(state: MapperState, stalled: bool = False) -> bool:
-    """Register the best unregistered image that PnP accepts; False when none can be.
-    ``stalled``: also retry images that failed before and see any more points since (see
-    ``MapperState.next_image_candidates``)."""
+def _register_next(state: MapperState) -> bool:
+    """Register the best unregistered image that PnP accepts; False when none can be.  After
+    the ready candidates come the failed images worth a retry when nothing else registers
+    (``MapperState.next_image_candidates(stalled=True)``)."""
     opts = state.opts
-    for i in state.next_image_candidates(stalled):
+    for i in state.next_image_candidates(stalled=True):
         rows, X = state.visible_points(i)
         if len(rows) < opts.abs_pose_min_num_inliers:
-            break  # candidates are sorted by visible points
+            continue
         x = state.obs_norm[rows]
         usac = cv2.UsacParams()
         usac.threshold = opts.abs_pose_max_error / state.focal(i)
@@ -180,10 +180,9 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
         last_global = state.num_registered
         log_progress(state, recorder)
         # A failed image is retried once it sees 20% more points (cheap on large clusters);
-        # when nothing registers, with any growth (at most MAX_REG_TRIALS failures), then
+        # when nothing else registers, with any growth (at most MAX_REG_TRIALS failures), then
         # without PnP.
-        while (_register_next(state) or _register_next(state, stalled=True)
-               or register_structureless(state, _relative_pose)):
+        while _register_next(state) or register_structureless(state, _relative_pose):
             state.triangulate_new(state.last_registered)
             if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= 10:
                 state.global_ba()  # covers what the local BA would adjust

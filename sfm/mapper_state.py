@@ -164,23 +164,24 @@ class MapperState(BundleAdjustmentSteps):
     def next_image_candidates(self, stalled: bool = False) -> list[int]:
         """Unregistered images ordered by how many triangulated points they see and how well
         spread those are (distinct cells of a 16 x 16 grid), retrying failed ones only once
-        they see 20% more points than at their last failure, or, when ``stalled`` (nothing
-        else registers), any more points, as long as they failed fewer than
-        ``MAX_REG_TRIALS`` times."""
-        scored = []
-        growth = 1.0 if stalled else 1.2
+        they see 20% more points than at their last failure.  With ``stalled``, the failed
+        images that see any more points, while they failed fewer than ``MAX_REG_TRIALS``
+        times, follow in the same order: what to try when nothing else registers, from the
+        same pass over the images."""
+        ready, retry = [], []
         for i in np.flatnonzero(~self.registered & ~self.used):
             vis, _ = self.visible_points(i)
             if len(vis) < self.opts.abs_pose_min_num_inliers:
                 continue
-            if self.failed[i] and (len(vis) <= growth * self.fail_visible[i]
-                                   or (stalled and self.failed[i] >= MAX_REG_TRIALS)):
-                continue
+            queue = ready
+            if self.failed[i] and len(vis) <= 1.2 * self.fail_visible[i]:
+                if not (stalled and self.failed[i] < MAX_REG_TRIALS and len(vis) > self.fail_visible[i]):
+                    continue
+                queue = retry
             prior = self.camera_of(i)
             cells = np.unique((self.obs_px[vis] // [prior.width / 16, prior.height / 16]) @ [1, 16])
-            scored.append((-len(cells), -len(vis), int(i)))
-        scored.sort()
-        return [i for _, _, i in scored]
+            queue.append((-len(cells), -len(vis), int(i)))
+        return [i for _, _, i in sorted(ready) + sorted(retry)]
 
     def visible_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         rows = self.image_rows[i]
