@@ -69,3 +69,15 @@ def test_report_only_runs_nothing_and_reads_the_cache(tmp_path):
     text = (tmp_path / "scaling.md").read_text()
     assert "| 500 | graphsfm-2 | 50.0 |" in text and "| 1000 | graphsfm-2 | not run |" in text
     assert not (tmp_path / "data").exists()  # no scene was generated, nothing was mapped
+
+
+def test_report_says_which_runs_were_resumed(tmp_path):
+    results = {
+        (2000, "colmap-incremental"): {"images": 2000, "method": "colmap-incremental", "time_s": 9000.0,
+                                       "registered": 2000, "segments": 3},
+        (2000, "graphsfm-2"): {"images": 2000, "method": "graphsfm-2", "time_s": 900.0, "registered": 2000,
+                               "segments": 1},
+    }
+    text = report(tmp_path, [2000], results)
+    assert "- colmap-incremental at 2000 images ran in 3 segments" in text
+    assert "graphsfm-2 at 2000 images ran in" not in text and "| 0.10 |" in text

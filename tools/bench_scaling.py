@@ -73,30 +73,46 @@ def run_child(argv: list[str]) -> tuple[int, float, int]:
     return code, time.perf_counter() - t0, peak[0]
 
 
-def one_run(out: Path, n: int, method: str) -> None:
+# The child's exit code when COLMAP's incremental mapper stopped at --peer-budget (resumable).
+STOPPED = 3
+
+
+def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> int:
     """The child: map DIR/data/<n>/database.db with ``method`` (bench_mapping's runners, the
-    time from database to final model); write its metrics to ``result.json``."""
+    time from database to final model); write its metrics to ``result.json``.  COLMAP's
+    incremental mapper resumes an earlier stopped run (``resumable_colmap``) and stops after
+    ``budget_s`` seconds (exit code ``STOPPED``)."""
     import logging
 
     from bench_mapping import row, run_colmap, run_graphsfm
+    from resumable_colmap import run_incremental
 
     from sfm.clustering import ClusterOptions
     from sfm.evaluation import read_gt_table
 
     logging.basicConfig(level=logging.WARNING)
     data, work = out / "data" / str(n), out / "runs" / str(n) / method
-    shutil.rmtree(work, ignore_errors=True)
-    if method.startswith("graphsfm"):  # the default cluster size, as graphsfm cluster uses
+    extra = {}
+    if method == "colmap-incremental":
+        model_dir, seconds, finished, segments = run_incremental(data / "database.db", work, budget_s)
+        if not finished:
+            print(f"  stopped after the budget at {seconds:.0f} s credited; the next run resumes", flush=True)
+            return STOPPED
+        extra["segments"] = segments
+    elif method.startswith("graphsfm"):  # the default cluster size, as graphsfm cluster uses
+        shutil.rmtree(work, ignore_errors=True)
         s_max = ClusterOptions().max_cluster_size
         model_dir, seconds, _ = run_graphsfm(data / "database.db", work, s_max, int(method.split("-")[1]))
     else:
+        shutil.rmtree(work, ignore_errors=True)
         model_dir, seconds = run_colmap(data / "database.db", work, method.split("-")[1], work / "progress.txt")
     r = row(method, model_dir if model_dir is not None and model_dir.exists() else None, seconds,
             read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
     result = {"images": n, **{k: r[k] for k in ("method", "time_s", "registered", "points", "med_rot_deg", "auc@1")
-                              if k in r}}
+                              if k in r}, **extra}
     (work / "database.db").unlink()
     (work / "result.json").write_text(json.dumps(result))
+    return 0
 
 
 def fit_exponent(rows: list[dict], lo: int = 500) -> float | None:
@@ -136,6 +152,9 @@ def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | N
                 continue
             ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
             lines.append("| " + " | ".join(str(r.get(k, "")) for k in head[:-1]) + f" | {ratio} |")
+    resumed = [f"{m} at {n} images ran in {r['segments']} segments (stopped at --peer-budget and resumed from "
+               "its snapshots; its time is their sum)" for (n, m), r in sorted(results.items()) if r.get("segments", 1) > 1]
+    lines += [""] + [f"- {line}" for line in resumed] if resumed else []
     lines += ["", "Fitted exponent b of t = a n^b over 500 images and up:"]
     for m in METHODS:
         b = fit_exponent([r for (n, mm), r in sorted(results.items()) if mm == m])
@@ -166,6 +185,31 @@ def plot(out: Path, results: dict) -> None:
     fig.savefig(out / "scaling.png", dpi=120)
 
 
+def run_method(out: Path, n: int, method: str, budget_s: float | None, force: bool) -> dict | None:
+    """One method at one size in a child process: its result row (peak memory over every
+    segment of a resumed run), or None when it failed or stopped at the budget."""
+    work = out / "runs" / str(n) / method
+    if force:
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"{n} images, {method} ...", flush=True)
+    argv = [sys.executable, __file__, "--out", str(out), "--run", str(n), method]
+    code, seconds, peak = run_child(argv + (["--budget", str(budget_s)] if budget_s else []))
+    peaks_file = work / "segment_peaks.json"
+    peaks = json.loads(peaks_file.read_text()) if peaks_file.exists() else []
+    if code == STOPPED:
+        peaks_file.write_text(json.dumps(peaks + [peak]))
+        return None
+    if code != 0:
+        print(f"  failed with exit code {code}; not cached", flush=True)
+        return None
+    r = json.loads((work / "result.json").read_text())
+    earlier = peaks[len(peaks) - (r.get("segments", 1) - 1):] if r.get("segments", 1) > 1 else []
+    r["peak_rss_gb"] = round(max(earlier + [peak]) / 1024**3, 2)
+    r["wall_s"] = round(seconds, 1)
+    print(f"  {r['time_s']} s, {r['registered']}/{n} registered, peak {r['peak_rss_gb']} GB", flush=True)
+    return r
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True, help="folder for data, cached runs, scaling.md/png")
@@ -175,12 +219,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--force", action="store_true", help="rerun cached results")
     parser.add_argument("--report-only", action="store_true",
                         help="run nothing: the table and plot from the cached results of --sizes and --methods")
+    parser.add_argument("--peer-budget", type=float, metavar="SECONDS",
+                        help="stop COLMAP's incremental mapper after this long in this run; the next run resumes "
+                             "it from its last snapshot (its time is the sum of the segments)")
     parser.add_argument("--run", nargs=2, metavar=("N", "METHOD"), help=argparse.SUPPRESS)  # the child
+    parser.add_argument("--budget", type=float, help=argparse.SUPPRESS)  # the child's --peer-budget
     args = parser.parse_args(argv)
     out = args.out.resolve()
     if args.run:
-        one_run(out, int(args.run[0]), args.run[1])
-        return 0
+        return one_run(out, int(args.run[0]), args.run[1], args.budget)
     results: dict = {}
     for n in args.sizes:
         data = out / "data" / str(n)
@@ -198,17 +245,10 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             if args.report_only:
                 continue
-            print(f"{n} images, {m} ...", flush=True)
-            code, seconds, peak = run_child([sys.executable, __file__, "--out", str(out), "--run", str(n), m])
-            if code != 0:
-                print(f"  failed with exit code {code}; not cached", flush=True)
-                continue
-            r = json.loads((out / "runs" / str(n) / m / "result.json").read_text())
-            r["peak_rss_gb"] = round(peak / 1024**3, 2)
-            r["wall_s"] = round(seconds, 1)
-            cache.write_text(json.dumps(r))
-            results[(n, m)] = r
-            print(f"  {r['time_s']} s, {r['registered']}/{n} registered, peak {r['peak_rss_gb']} GB", flush=True)
+            r = run_method(out, n, m, args.peer_budget, args.force)
+            if r is not None:
+                cache.write_text(json.dumps(r))
+                results[(n, m)] = r
         text = report(out, args.sizes, results, args.skip_peers_above)
         (out / "scaling.md").write_text(text)
     print(text)
