@@ -55,7 +55,7 @@ def test_report_table_ratio_and_skipped_peers(tmp_path):
 def test_report_says_how_far_an_unfinished_run_got(tmp_path):
     log = tmp_path / "runs" / "2000" / "colmap-incremental" / "progress.txt"
     log.parent.mkdir(parents=True)
-    log.write_text("80.0 102\n3405.1 1156\n")  # "seconds registered", as run_colmap appends
+    log.write_text("80.0 102\n3405.1 1156\n")  # "seconds registered", as resumable_colmap appends
     text = report(tmp_path, [2000], {}, skip_peers_above=2000)
     assert "| 2000 | colmap-incremental | > 3405 (stopped unfinished: 1156/2000 registered by then) |" in text
     assert "| 2000 | colmap-global | not run |" in text  # no progress log: not run

@@ -13,7 +13,6 @@ Prints a Markdown table.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import shutil
 import sys
@@ -48,10 +47,9 @@ def run_graphsfm(db: Path, out: Path, max_cluster_size: int | None, workers: int
     return out / "sparse" / "0", time.perf_counter() - t0, clusters
 
 
-def run_colmap(db: Path, out: Path, kind: str, progress: Path | None = None) -> tuple[Path | None, float]:
-    """pycolmap's mapper on a copy of ``db``; with ``progress``, the incremental mapper appends
-    "seconds registered" there each time it registers an image (a long run that is stopped
-    still says how far it got)."""
+def run_colmap(db: Path, out: Path, kind: str) -> tuple[Path | None, float]:
+    """pycolmap's mapper on a copy of ``db`` (``tools/resumable_colmap.py`` runs the incremental
+    one in resumable segments for ``bench_scaling``)."""
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
@@ -60,17 +58,7 @@ def run_colmap(db: Path, out: Path, kind: str, progress: Path | None = None) -> 
     shutil.copy(db, out / "database.db")
     t0 = time.perf_counter()
     if kind == "incremental":
-        with contextlib.ExitStack() as stack:
-            callback = None
-            if progress is not None:
-                log = stack.enter_context(progress.open("w", buffering=1))
-                count = [2]  # the initial pair registers two
-
-                def callback() -> None:
-                    count[0] += 1
-                    log.write(f"{time.perf_counter() - t0:.1f} {count[0]}\n")
-            models = pycolmap.incremental_mapping(str(out / "database.db"), str(out / "images"),
-                                                  str(out / "sparse"), next_image_callback=callback)
+        models = pycolmap.incremental_mapping(str(out / "database.db"), str(out / "images"), str(out / "sparse"))
     else:
         models = pycolmap.global_mapping(str(out / "database.db"), str(out / "images"), str(out / "sparse"))
     elapsed = time.perf_counter() - t0

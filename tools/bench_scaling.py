@@ -105,7 +105,7 @@ def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> in
         model_dir, seconds, _ = run_graphsfm(data / "database.db", work, s_max, int(method.split("-")[1]))
     else:
         shutil.rmtree(work, ignore_errors=True)
-        model_dir, seconds = run_colmap(data / "database.db", work, method.split("-")[1], work / "progress.txt")
+        model_dir, seconds = run_colmap(data / "database.db", work, method.split("-")[1])
     r = row(method, model_dir if model_dir is not None and model_dir.exists() else None, seconds,
             read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
     result = {"images": n, **{k: r[k] for k in ("method", "time_s", "registered", "points", "med_rot_deg", "auc@1")
@@ -203,7 +203,8 @@ def run_method(out: Path, n: int, method: str, budget_s: float | None, force: bo
         print(f"  failed with exit code {code}; not cached", flush=True)
         return None
     r = json.loads((work / "result.json").read_text())
-    earlier = peaks[len(peaks) - (r.get("segments", 1) - 1):] if r.get("segments", 1) > 1 else []
+    earlier = peaks[-(r.get("segments", 1) - 1):] if r.get("segments", 1) > 1 else []  # this run's segments
+    peaks_file.unlink(missing_ok=True)
     r["peak_rss_gb"] = round(max(earlier + [peak]) / 1024**3, 2)
     r["wall_s"] = round(seconds, 1)
     print(f"  {r['time_s']} s, {r['registered']}/{n} registered, peak {r['peak_rss_gb']} GB", flush=True)
