@@ -81,3 +81,23 @@ def test_report_says_which_runs_were_resumed(tmp_path):
     text = report(tmp_path, [2000], results)
     assert "- colmap-incremental at 2000 images ran in 3 segments" in text
     assert "graphsfm-2 at 2000 images ran in" not in text and "| 0.10 |" in text
+
+
+def test_rows_say_which_code_ran(tmp_path):
+    import re
+
+    from bench_scaling import code_version
+
+    here = code_version("graphsfm-2")
+    if here.startswith("unknown"):
+        import pytest
+
+        pytest.skip("not a git checkout")
+    assert re.fullmatch(r"code [0-9a-f]{8}(\+dirty)?", here)
+    assert code_version("colmap-global").startswith("pycolmap ")
+    results = {
+        (500, "graphsfm-2"): {"images": 500, "method": "graphsfm-2", "time_s": 50.0, "code": here},
+        (500, "graphsfm-1"): {"images": 500, "method": "graphsfm-1", "time_s": 80.0},  # cached before codes
+    }
+    text = report(tmp_path, [500], results)
+    assert f"| {here} |" in text and "| 500 | graphsfm-1 | 80.0 |" in text and "| not recorded |" in text

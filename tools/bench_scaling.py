@@ -77,6 +77,25 @@ def run_child(argv: list[str]) -> tuple[int, float, int]:
 STOPPED = 3
 
 
+def code_version(method: str) -> str:
+    """What ran: for graphsfm, the git tree ids of ``sfm/``, ``graph/`` and ``backend/`` (one
+    short hash, so rows from commits that differ only in tools or docs compare as the same code;
+    ``+dirty`` when those folders have uncommitted changes); for a peer, pycolmap's version."""
+    if method in PEERS:
+        import pycolmap
+
+        return f"pycolmap {pycolmap.__version__}"
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    git = lambda *a: subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True)
+    trees = git("rev-parse", "HEAD:sfm", "HEAD:graph", "HEAD:backend")
+    if trees.returncode != 0:
+        return "unknown (not a git checkout)"
+    dirty = git("status", "--porcelain", "--", "sfm", "graph", "backend").stdout.strip()
+    return "code " + hashlib.sha1(trees.stdout.encode()).hexdigest()[:8] + ("+dirty" if dirty else "")
+
+
 def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> int:
     """The child: map DIR/data/<n>/database.db with ``method`` (bench_mapping's runners, the
     time from database to final model); write its metrics to ``result.json``.  COLMAP's
@@ -109,7 +128,8 @@ def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> in
     r = row(method, model_dir if model_dir is not None and model_dir.exists() else None, seconds,
             read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
     result = {"images": n, **{k: r[k] for k in ("method", "time_s", "registered", "points", "med_rot_deg", "auc@1")
-                              if k in r}, **extra}
+                              if k in r}, **extra,
+              "code": code_version(method)}
     (work / "database.db").unlink()
     (work / "result.json").write_text(json.dumps(result))
     return 0
@@ -136,7 +156,7 @@ def unfinished(out: Path, n: int, method: str) -> str:
 
 def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | None = None) -> str:
     head = ["images", "method", "time_s", "peak_rss_gb", "registered", "points", "med_rot_deg", "auc@1",
-            "time / colmap-incremental"]
+            "time / colmap-incremental", "code"]
     machine = (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
                f"Python {platform.python_version()}; command: python tools/bench_scaling.py --out {out} "
                f"--sizes {' '.join(map(str, sizes))}")
@@ -148,13 +168,16 @@ def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | N
             if r is None:
                 skipped = m in PEERS and skip_peers_above is not None and n > skip_peers_above
                 why = f"skipped (peers above {skip_peers_above} images)" if skipped else unfinished(out, n, m)
-                lines.append(f"| {n} | {m} | {why} | | | | | | |")
+                lines.append(f"| {n} | {m} | {why} | | | | | | | |")
                 continue
             ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
-            lines.append("| " + " | ".join(str(r.get(k, "")) for k in head[:-1]) + f" | {ratio} |")
+            cells = [str(r.get(k, "")) for k in head[:-2]] + [ratio, r.get("code", "not recorded")]
+            lines.append("| " + " | ".join(cells) + " |")
     resumed = [f"{m} at {n} images ran in {r['segments']} segments (stopped at --peer-budget and resumed from "
                "its snapshots; its time is their sum)" for (n, m), r in sorted(results.items()) if r.get("segments", 1) > 1]
     lines += [""] + [f"- {line}" for line in resumed] if resumed else []
+    lines += ["", "code: the graphsfm code that ran (a hash of the git trees of sfm/, graph/ and backend/) "
+              "or the peer's version; rows with one code come from the same algorithm code."]
     lines += ["", "Fitted exponent b of t = a n^b over 500 images and up:"]
     for m in METHODS:
         b = fit_exponent([r for (n, mm), r in sorted(results.items()) if mm == m])
