@@ -9,6 +9,13 @@ resumes from the newest complete snapshot (``input_path``: COLMAP continues that
 global-BA schedule restarts from the snapshot's image count).  Work after the newest snapshot of
 a segment that was killed is lost, not counted.
 
+Snapshots are taken while the model grows, so none holds COLMAP's final iterative global
+refinement (re-triangulation and global BAs until little changes), and COLMAP skips that
+refinement when a continued model registers no new image.  A resumed segment that registers
+nothing therefore runs it itself (:func:`final_refinement`, the same calls COLMAP makes), within
+the segment's credited time; otherwise a run killed in its final refinement would resume to an
+unrefined model in no time.
+
 The time credited to COLMAP is the time of the segments up to the snapshot each one resumed
 from: ``segments.json`` records each segment's wall-clock start and the seconds credited before
 it, and a snapshot's time is read off its files' modification time.  Each resume also re-reads
@@ -68,6 +75,28 @@ def _resume_point(work: Path, segments: list[dict]):
     return None
 
 
+def final_refinement(database: Path, model, options) -> None:
+    """COLMAP's final step of a model, in place: its iterative global refinement with the
+    pipeline's options, then the removal of frames with implausible intrinsics."""
+    import pycolmap
+
+    cache_options = pycolmap.DatabaseCacheOptions()
+    cache_options.min_num_matches = options.min_num_matches
+    cache_options.ignore_watermarks = options.ignore_watermarks
+    db = pycolmap.Database.open(str(database))
+    try:
+        cache = pycolmap.DatabaseCache.create(db, cache_options)
+    finally:
+        db.close()
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(model)
+    mapper.iterative_global_refinement(options.ba_global_max_refinements, options.ba_global_max_refinement_change,
+                                       options.get_mapper(), options.get_global_bundle_adjustment(),
+                                       options.get_triangulation())
+    mapper.filter_frames(options.get_mapper())
+    mapper.end_reconstruction(False)
+
+
 def _prune(root: Path) -> None:
     for old in snapshots(root)[:-KEEP_SNAPSHOTS]:
         shutil.rmtree(old, ignore_errors=True)
@@ -118,11 +147,16 @@ def run_incremental(db: Path, work: Path, budget_s: float | None = None) -> tupl
 
         segments.append({"wall_start": time.time(), "offset": offset, "from": input_path})
         ledger.write_text(json.dumps(segments, indent=1))
+        start_count = count[0]
         models = pycolmap.incremental_mapping(str(work / "database.db"), str(work / "images"), str(sparse),
                                               options, input_path=input_path, next_image_callback=callback)
+        best = max(models, key=lambda k: models[k].num_reg_images()) if models else None
+        stopped = bool(budget_s) and time.perf_counter() - t0 >= budget_s
+        if resume is not None and best is not None and count[0] == start_count and not stopped:
+            final_refinement(work / "database.db", models[best], options)  # COLMAP skips it here
+            (sparse / str(best) / "images.bin").unlink(missing_ok=True)  # written below, refined
         segment_s = time.perf_counter() - t0
-    best = max(models, key=lambda k: models[k].num_reg_images()) if models else None
-    if budget_s and segment_s >= budget_s:  # stopped at the budget: its model is the next resume point
+    if stopped:  # stopped at the budget: its model is the next resume point
         if best is None:
             return None, offset + segment_s, False, len(segments)
         stop = work / "snapshots" / f"{int(time.time() * 1000):013d}"
