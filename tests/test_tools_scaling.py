@@ -101,3 +101,15 @@ def test_rows_say_which_code_ran(tmp_path):
     }
     text = report(tmp_path, [500], results)
     assert f"| {here} |" in text and "| 500 | graphsfm-1 | 80.0 |" in text and "| not recorded |" in text
+
+
+def test_the_table_shows_cached_rows_of_methods_not_run_this_time(tmp_path):
+    runs = tmp_path / "runs" / "500"
+    (runs / "colmap-incremental").mkdir(parents=True)
+    (runs / "colmap-incremental" / "progress.txt").write_text("10.0 250\n")  # its log, from before it ended
+    (runs / "colmap-incremental.json").write_text('{"images": 500, "method": "colmap-incremental", "time_s": 200.0}')
+    (runs / "graphsfm-2.json").write_text('{"images": 500, "method": "graphsfm-2", "time_s": 50.0}')
+    assert main(["--out", str(tmp_path), "--sizes", "500", "--methods", "graphsfm-2", "--report-only"]) == 0
+    text = (tmp_path / "scaling.md").read_text()
+    assert "| 500 | colmap-incremental | 200.0 |" in text and "stopped unfinished" not in text
+    assert "| 500 | graphsfm-2 | 50.0 |" in text and "| 0.25 |" in text
