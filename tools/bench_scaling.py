@@ -260,22 +260,16 @@ def main(argv: list[str] | None = None) -> int:
 
             shutil.rmtree(data, ignore_errors=True)
             run_synth(data, SynthOptions(scene="aerial", num_images=n, outlier_ratio=0.2, seed=0))
-        for m in set(METHODS) - set(args.methods):  # the table shows every method's cached row
-            if (out / "runs" / str(n) / f"{m}.json").exists():
-                results[(n, m)] = json.loads((out / "runs" / str(n) / f"{m}.json").read_text())
-        for m in args.methods:
-            if m in PEERS and n > args.skip_peers_above:
-                continue
+        for m in METHODS:  # the table shows every cached row, of methods not run this time too
             cache = out / "runs" / str(n) / f"{m}.json"
-            if cache.exists() and not args.force:
+            run_now = m in args.methods and not args.report_only and not (m in PEERS and n > args.skip_peers_above)
+            if cache.exists() and not (run_now and args.force):
                 results[(n, m)] = json.loads(cache.read_text())
-                continue
-            if args.report_only:
-                continue
-            r = run_method(out, n, m, args.peer_budget, args.force)
-            if r is not None:
-                cache.write_text(json.dumps(r))
-                results[(n, m)] = r
+            elif run_now:
+                r = run_method(out, n, m, args.peer_budget, args.force)
+                if r is not None:
+                    cache.write_text(json.dumps(r))
+                    results[(n, m)] = r
         text = report(out, args.sizes, results, args.skip_peers_above)
         (out / "scaling.md").write_text(text)
     print(text)
