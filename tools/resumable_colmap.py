@@ -152,9 +152,9 @@ def run_incremental(db: Path, work: Path, budget_s: float | None = None) -> tupl
                                               options, input_path=input_path, next_image_callback=callback)
         best = max(models, key=lambda k: models[k].num_reg_images()) if models else None
         stopped = bool(budget_s) and time.perf_counter() - t0 >= budget_s
-        if resume is not None and best is not None and count[0] == start_count and not stopped:
+        refined = resume is not None and best is not None and count[0] == start_count and not stopped
+        if refined:
             final_refinement(work / "database.db", models[best], options)  # COLMAP skips it here
-            (sparse / str(best) / "images.bin").unlink(missing_ok=True)  # written below, refined
         segment_s = time.perf_counter() - t0
     if stopped:  # stopped at the budget: its model is the next resume point
         if best is None:
@@ -165,7 +165,8 @@ def run_incremental(db: Path, work: Path, budget_s: float | None = None) -> tupl
         return stop, credited_seconds(segments, snapshot_time(stop)), False, len(segments)
     if best is None:
         return None, offset + segment_s, True, len(segments)
-    if not (sparse / str(best) / "images.bin").exists():  # a resumed model is returned, not written
+    if refined or not (sparse / str(best) / "images.bin").exists():  # COLMAP may return a resumed model
+        # unwritten, and any copy it wrote of a refined one predates the refinement
         (sparse / str(best)).mkdir(parents=True, exist_ok=True)
         models[best].write(str(sparse / str(best)))
     return sparse / str(best), offset + segment_s, True, len(segments)
