@@ -12,7 +12,7 @@ from sfm.camera_models import project
 from sfm.database import Database
 from sfm.errors import InputError
 from sfm.geometry import look_at, quaternion_to_rotation, rotation_angle_deg
-from sfm.matching import MatchOptions, match_descriptors, run_match
+from sfm.matching import MatchOptions, match_descriptors, normalize_descriptors, run_match
 from sfm.pairs import exhaustive_pairs, select_pairs, sequential_pairs
 
 
@@ -87,6 +87,15 @@ def test_ratio_test_rejects_ambiguous_matches():
     d2 = np.vstack([noisy(rng, d, 0.02), noisy(rng, d[:10], 0.02)])  # the first 10 twice
     m = match_descriptors(quantised(d), quantised(d2))
     assert set(m[:, 0].tolist()) == set(range(10, 50))
+
+
+def test_prenormalised_descriptors_give_the_same_matches():
+    d1, d2, _ = synthetic_descriptor_pair(5, 700, 600)
+    q1, q2 = d1, d2  # already quantised
+    expected = match_descriptors(q1, q2, matcher="brute")
+    assert len(expected) > 300
+    got = match_descriptors(normalize_descriptors(q1), normalize_descriptors(q2), matcher="brute", normalized=True)
+    assert np.array_equal(got, expected)
 
 
 def test_flann_is_deterministic_for_a_seed():
