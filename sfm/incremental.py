@@ -85,18 +85,40 @@ def two_view_score(state: MapperState, i: int, j: int, R: np.ndarray, t: np.ndar
     return int(good.sum()), float(np.median(angles))
 
 
+def ray_angles(state: MapperState, i: int, j: int, R: np.ndarray, matches: np.ndarray) -> np.ndarray:
+    """Triangulation angle (degrees) of each match between images ``i`` and ``j`` of relative
+    rotation ``R`` (cam_j_from_cam_i), without triangulating: the angle at a point between its
+    rays from the two centres is the angle between its viewing directions expressed in one
+    frame, whatever the baseline (exact for noise-free matches)."""
+    d1 = state.norm_of(i, matches[:, 0])
+    d2 = state.norm_of(j, matches[:, 1])
+    d1 = np.column_stack([d1, np.ones(len(d1))])
+    d2 = np.column_stack([d2, np.ones(len(d2))]) @ R  # rows R^T d2: the rays of j in i's frame
+    cos = np.sum(d1 * d2, axis=1) / (np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+# A candidate initial pair whose inliers' median ray angle is below this share of the angle
+# threshold is not triangulated unless every threshold relaxation needs it: the median over the
+# points that pass the checks is the same angle over slightly fewer rows, far from a 20% gap.
+_DEFER_ANGLE_SHARE = 0.8
+
+
 def _try_initial_pair(state: MapperState, tried: set) -> bool:
     """Find and reconstruct an initial pair among unregistered images.
 
     Candidates are the pairs with the most inliers (at least ``init_min_num_inliers`` when any
-    has that many), up to ``init_max_pairs``; each is reconstructed once (E, two-view
-    triangulation).  The pair with the most well-triangulated points among those whose median
-    triangulation angle reaches ``init_min_tri_angle`` wins; if none does, the angle is halved,
-    up to three times (COLMAP relaxes twice; a camera moving forward along a street sees median
-    angles of 2-3 degrees even between frames a few steps apart, and BA widens the baseline as
-    the model grows).  Candidates come in order of inliers and a score never exceeds a pair's
-    inliers, so the search stops once a pair passing the first angle threshold scores more than
-    the next candidate has inliers: the same winner, fewer two-view reconstructions."""
+    has that many), up to ``init_max_pairs``; each gets its relative pose once (E).  The pair
+    with the most well-triangulated points among those whose median triangulation angle
+    reaches ``init_min_tri_angle`` wins; if none does, the angle is halved, up to three times
+    (COLMAP relaxes twice; a camera moving forward along a street sees median angles of 2-3
+    degrees even between frames a few steps apart, and BA widens the baseline as the model
+    grows).  Candidates come in order of inliers and a score never exceeds a pair's inliers, so
+    the search stops once a pair passing the first angle threshold scores more than the next
+    candidate has inliers: the same winner, fewer two-view reconstructions.  The two-view
+    triangulation that scores a pair (:func:`two_view_score`) waits until a threshold needs it
+    for pairs whose rays are clearly too parallel for the first one (:func:`ray_angles`): on
+    a ring of views, most pairs with many matches are neighbours a few degrees apart."""
     opts = state.opts
     cands = [
         (len(m), i, j, m)
@@ -108,8 +130,17 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
     cands.sort(key=lambda c: (-c[0], c[1], c[2]))
     if sum(c[0] >= opts.init_min_num_inliers for c in cands) >= 1:
         cands = [c for c in cands if c[0] >= opts.init_min_num_inliers]
-    evaluated = []
+    evaluated, deferred = [], []
     best_wide = -1  # best score so far among pairs that pass the first angle threshold
+
+    def score(i, j, R, t, m):
+        points, angle = two_view_score(state, i, j, R, t, m)
+        log.debug("init candidate %s-%s: %d inliers, median angle %.1f deg, %d points",
+                  state.names[i], state.names[j], len(m), angle, points)
+        if points >= opts.abs_pose_min_num_inliers:
+            evaluated.append((points, angle, i, j, R, t))
+        return points, angle
+
     for n_inl, i, j, m in cands[: opts.init_max_pairs]:
         if best_wide > n_inl:
             break  # a score counts inliers of these matches: no later pair can beat it
@@ -117,17 +148,21 @@ def _try_initial_pair(state: MapperState, tried: set) -> bool:
         if rel is None:
             continue
         R, t, inl = rel
-        score, angle = two_view_score(state, i, j, R, t, m[inl])
-        log.debug("init candidate %s-%s: %d inliers, median angle %.1f deg, %d points", state.names[i], state.names[j], n_inl, angle, score)
-        if score >= opts.abs_pose_min_num_inliers:
-            evaluated.append((score, angle, i, j, R, t))
-            if angle >= opts.init_min_tri_angle:
-                best_wide = max(best_wide, score)
+        if np.median(ray_angles(state, i, j, R, m[inl])) < _DEFER_ANGLE_SHARE * opts.init_min_tri_angle:
+            deferred.append((i, j, R, t, m[inl]))
+            continue
+        points, angle = score(i, j, R, t, m[inl])
+        if points >= opts.abs_pose_min_num_inliers and angle >= opts.init_min_tri_angle:
+            best_wide = max(best_wide, points)
     for min_angle in (opts.init_min_tri_angle, opts.init_min_tri_angle / 2, opts.init_min_tri_angle / 4,
                       opts.init_min_tri_angle / 8):
+        if min_angle < opts.init_min_tri_angle:
+            for args in deferred:
+                score(*args)
+            deferred = []
         ok = [e for e in evaluated if e[1] >= min_angle]
         if ok:
-            score, angle, i, j, R, t = max(ok, key=lambda e: (e[0], -e[2], -e[3]))
+            points, angle, i, j, R, t = max(ok, key=lambda e: (e[0], -e[2], -e[3]))
             tried.add((i, j))
             state.start_model(i, j, R, t)
             return True

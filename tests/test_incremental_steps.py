@@ -113,9 +113,43 @@ def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
     monkeypatch.setattr(incremental, "_relative_pose",
                         lambda st, i, j, m, seed: calls.append((i, j)) or (eye, t, np.ones(len(m), bool)))
     monkeypatch.setattr(incremental, "two_view_score", lambda st, i, j, R, tt, m: table[(i, j)][1:])
+    monkeypatch.setattr(incremental, "ray_angles", lambda st, i, j, R, m: np.full(len(m), table[(i, j)][2]))
     assert _try_initial_pair(state, set())
     assert started == [(1, 2)]
     assert calls == [(0, 1), (0, 2), (1, 2)]
+
+
+def test_narrow_candidates_are_scored_only_when_the_angle_is_relaxed(monkeypatch):
+    """Pairs whose rays are clearly too parallel for the first threshold are triangulated only
+    once no pair passes it; then the best of all wins at the relaxed threshold."""
+    table = {(0, 1): (500, 480, 10.0), (0, 2): (400, 300, 9.0), (1, 2): (350, 340, 14.0)}
+    opts = MapperOptions()  # first threshold 16 deg, deferred below 12.8 deg; then 8 deg
+    eye, t = np.eye(3), np.array([1.0, 0.0, 0.0])
+    started, scored = [], []
+    state = types.SimpleNamespace(
+        opts=opts, registered=np.zeros(3, bool), used=np.zeros(3, bool), names=["a", "b", "c"],
+        pair_matches={p: (np.zeros((n, 2), np.int64), 2) for p, (n, _, _) in table.items()},
+        start_model=lambda i, j, R, t: started.append((i, j)),
+    )  # fmt: skip
+    monkeypatch.setattr(incremental, "_relative_pose", lambda st, i, j, m, seed: (eye, t, np.ones(len(m), bool)))
+    monkeypatch.setattr(incremental, "two_view_score",
+                        lambda st, i, j, R, tt, m: scored.append((i, j)) or table[(i, j)][1:])
+    monkeypatch.setattr(incremental, "ray_angles", lambda st, i, j, R, m: np.full(len(m), table[(i, j)][2]))
+    assert _try_initial_pair(state, set())
+    assert scored == [(1, 2), (0, 1), (0, 2)]  # (1, 2) at once (14 >= 12.8), the others deferred
+    assert started == [(0, 1)]  # none reaches 16 deg; at 8 deg the highest score wins
+
+
+def test_ray_angles_are_the_triangulation_angles(tmp_path):
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=4))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    (i, j), (m, _) = max(state.pair_matches.items(), key=lambda kv: len(kv[1][0]))
+    R, t, inl = incremental._relative_pose(state, i, j, m, 0)
+    rays = incremental.ray_angles(state, i, j, R, m[inl])
+    _, median = two_view_score(state, i, j, R, t, m[inl])
+    assert rays.min() >= 0 and np.median(rays) > 1.0
+    assert abs(np.median(rays) - median) < 0.02 * median
 
 
 
