@@ -18,6 +18,7 @@ import tempfile
 from typing import TYPE_CHECKING
 
 import gtsam
+import numpy as np
 
 if TYPE_CHECKING:
     from backend.bundle_adjustment import BAOptions
@@ -59,11 +60,9 @@ def lm_optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtO
     if ordering_name == "points_first":
         # The classic BA ordering: eliminating every point first leaves the reduced camera
         # system (a Schur complement); no graph partitioning to compute.
-        keys = list(values.keys())
-        ordering = gtsam.Ordering()
-        for key in sorted(keys, key=lambda k: gtsam.Symbol(k).chr() != ord("l")):
-            ordering.push_back(key)
-        params.setOrdering(ordering)
+        keys = np.array(values.keys(), dtype=np.uint64)
+        is_point = (keys >> np.uint64(56)) == ord("l")  # a Symbol's character is its top byte
+        params.setOrdering(gtsam.Ordering(np.concatenate([keys[is_point], keys[~is_point]]).tolist()))
     else:
         params.setOrderingType(ordering_name.upper())
     params.setMaxIterations(options.max_iterations)
