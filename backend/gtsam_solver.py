@@ -47,8 +47,9 @@ def robust_noise(loss: str, scale: float, sigma: float = 1.0) -> gtsam.noiseMode
 AUTO_METIS_OBSERVATIONS = 100_000
 
 
-def lm_optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtOptimizer:
-    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log."""
+def lm_optimizer(graph, values, options: BAOptions, history: list | None = None) -> gtsam.LevenbergMarquardtOptimizer:
+    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log;
+    ``history`` (a list) receives each iteration's ``(cost before, cost after)``."""
     if options.ordering not in ("auto", "points_first", "metis", "colamd"):
         raise ValueError(
             f"unknown ordering {options.ordering!r}; use 'auto', 'points_first', 'metis' or 'colamd'"
@@ -69,9 +70,13 @@ def lm_optimizer(graph, values, options: BAOptions) -> gtsam.LevenbergMarquardtO
     params.setRelativeErrorTol(options.relative_tolerance)
     params.setAbsoluteErrorTol(options.absolute_tolerance)
     level = logging.INFO if options.verbose else logging.DEBUG
-    params.iterationHook = lambda it, before, after: logger.log(
-        level, "LM iteration %d: cost %.6g -> %.6g", it, before, after
-    )
+
+    def hook(iteration: int, before: float, after: float) -> None:
+        logger.log(level, "LM iteration %d: cost %.6g -> %.6g", iteration, before, after)
+        if history is not None:
+            history.append((before, after))
+
+    params.iterationHook = hook
     return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
 
 

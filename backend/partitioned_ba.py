@@ -95,6 +95,7 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
     param_sum = [np.zeros_like(np.asarray(p, float)) for p in camera_params]
     param_count = np.zeros(len(camera_params))
     points_out, iterations, success, converged, initial_sq = points.copy(), 0, True, True, 0.0
+    last_decrease = 0.0
     for k in range(num_parts):
         mask = part_of_point[obs_point] == k
         res = bundle_adjust(camera_models, camera_params, image_camera, rotations, translations, points,
@@ -111,6 +112,7 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
         mine = part_of_point == k
         points_out[mine] = res.points[mine]
         iterations += res.iterations
+        last_decrease = max(last_decrease, res.last_decrease)
         initial_sq += res.initial_rms**2 * res.num_observations
         success, converged = success and res.success, converged and res.converged
         if logger.isEnabledFor(logging.DEBUG):
@@ -135,4 +137,5 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
     return BAResult(rotations=rot_out, translations=trans_out, points=points_out, camera_params=params_out,
                     initial_rms=float(np.sqrt(initial_sq / len(obs_image))), final_rms=float(np.sqrt(sq_sum / len(obs_image))),
                     final_mean_error=err_sum / len(obs_image), iterations=iterations, time_s=time.perf_counter() - start,
-                    num_observations=len(obs_image), success=success, converged=converged)
+                    num_observations=len(obs_image), success=success, converged=converged,
+                    last_decrease=last_decrease)

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from backend.memory import return_freed_memory
+from sfm.mapper_ba import FINAL_TOLERANCE, GROWING_TOLERANCE
 from sfm.mapper_input import MapperInput, MapperOptions
 from sfm.mapper_output import log_progress, to_reconstruction
 from sfm.mapper_state import MapperState
@@ -239,23 +240,31 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
     return models
 
 
-# A second final BA runs only when re-triangulation after the first changed more than this
-# share of the observations (COLMAP's ba_global_max_refinement_change, 0.0005): below it the
-# second BA moves nothing that matters and costs as much as the first.
+# A second final BA runs when re-triangulation after the first changed more than this share of
+# the observations (COLMAP's ba_global_max_refinement_change, 0.0005): below it the second BA
+# moves nothing that matters and costs as much as the first.
 MAX_REFINEMENT_CHANGE = 0.0005
 
 
 def _final_refinement(state: MapperState) -> None:
-    """Final global BA, re-triangulation, and a second final BA if that changed enough."""
-    state.global_ba(final=True)
+    """Final global BA, re-triangulation, and a second final BA if that changed enough.
+
+    The first BA stops at the growing model's looser tolerance (a relative cost decrease of
+    1e-3): re-triangulation usually changes the problem, and the second BA, run to
+    ``FINAL_TOLERANCE``, starts from there.  When nothing changed enough, the second BA runs
+    only if the first stopped short of ``FINAL_TOLERANCE`` (its last decrease was larger), so
+    the last BA of every model reaches it.  On temple_ring this saves three of ten final LM
+    iterations."""
+    state.global_ba(final=True, tolerance=GROWING_TOLERANCE)
+    first_decrease = state.last_ba_decrease
     before = int(state.obs_inlier.sum())
     state.retriangulate()
     changed = int(state.obs_inlier.sum()) - before
-    if changed > MAX_REFINEMENT_CHANGE * max(before, 1):
+    if changed > MAX_REFINEMENT_CHANGE * max(before, 1) or first_decrease >= FINAL_TOLERANCE:
         state.global_ba(final=True)
     else:
-        log.debug("%s: re-triangulation changed %d of %d observations: no second final BA",
-                  state.payload.label, changed, before)
+        log.debug("%s: re-triangulation changed %d of %d observations and the first final BA "
+                  "converged: no second final BA", state.payload.label, changed, before)
 
 
 def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],

@@ -169,6 +169,18 @@ def test_noisy_rms_matches_the_residual_degrees_of_freedom():
     assert rms == pytest.approx(result.final_rms, rel=1e-12)
 
 
+def test_last_decrease_says_where_the_tolerance_stopped_lm():
+    truth = ring_scene(noise=0.5, seed=5)
+    start = perturb(truth)
+    loose = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal", relative_tolerance=1e-3))
+    assert loose.converged and 0.0 <= loose.last_decrease < 1e-3
+    one = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal", max_iterations=1))
+    assert one.iterations == 1 and not one.converged
+    # the first iteration from a perturbed start removes most of the cost
+    assert one.last_decrease == pytest.approx(1.0 - (one.final_rms / one.initial_rms) ** 2, abs=0.05)
+    assert one.last_decrease > 0.5
+
+
 def test_robust_loss_resists_gross_outliers():
     """5% of the observations moved by 50 px; sigma 0.5 px elsewhere (noise floor ~0.02 deg)."""
     truth = ring_scene(model=LONG_FOCAL, n_points=500, noise=0.5, seed=7)

@@ -14,6 +14,7 @@ from sfm.incremental import (
     _try_initial_pair,
     two_view_score,
 )
+from sfm.mapper_ba import FINAL_TOLERANCE, GROWING_TOLERANCE
 from sfm.mapper_input import MapperOptions
 from sfm.mapper_state import MapperState
 from sfm.mapping import load_payloads
@@ -65,18 +66,20 @@ def test_initial_pair_search_stops_early_with_the_full_search_winner(tmp_path, m
 
 
 class _FakeState:
-    """What ``_final_refinement`` touches: counts final BAs; re-triangulation re-admits
-    ``gain`` observations."""
+    """What ``_final_refinement`` touches: records the final BAs' tolerances; each BA's last LM
+    iteration lowered the cost by ``decrease``; re-triangulation re-admits ``gain`` observations."""
 
-    def __init__(self, num_observations: int, gain: int) -> None:
+    def __init__(self, num_observations: int, gain: int, decrease: float) -> None:
         self.obs_inlier = np.zeros(num_observations + gain + 10, bool)
         self.obs_inlier[:num_observations] = True
-        self.gain, self.final_bas = gain, 0
+        self.gain, self.decrease, self.tolerances = gain, decrease, []
+        self.last_ba_decrease = 0.0
         self.payload = types.SimpleNamespace(label="C0")
 
-    def global_ba(self, final: bool = False) -> None:
+    def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
         assert final
-        self.final_bas += 1
+        self.tolerances.append(tolerance)
+        self.last_ba_decrease = self.decrease
 
     def retriangulate(self) -> int:
         start = int(self.obs_inlier.sum())
@@ -84,13 +87,18 @@ class _FakeState:
         return self.gain
 
 
-def test_second_final_ba_only_when_retriangulation_changed_enough():
+def test_second_final_ba_when_retriangulation_changed_enough_or_the_first_stopped_early():
     n = 100_000
     limit = int(MAX_REFINEMENT_CHANGE * n)  # 50 observations
-    for gain, expected in ((0, 1), (3, 1), (limit, 1), (limit + 1, 2), (n // 100, 2)):
-        state = _FakeState(n, gain)
+    converged, early = 0.5 * FINAL_TOLERANCE, 0.5 * (FINAL_TOLERANCE + GROWING_TOLERANCE)
+    for gain, decrease, expected in ((0, converged, 1), (3, converged, 1), (limit, converged, 1),
+                                     (limit + 1, converged, 2), (n // 100, converged, 2),
+                                     (0, early, 2), (limit, early, 2)):
+        state = _FakeState(n, gain, decrease)
         _final_refinement(state)
-        assert state.final_bas == expected, (gain, state.final_bas)
+        assert len(state.tolerances) == expected, (gain, decrease, state.tolerances)
+        # the first stops at the growing model's tolerance; a second one at the final one
+        assert state.tolerances == [GROWING_TOLERANCE, FINAL_TOLERANCE][:expected]
 
 
 def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
