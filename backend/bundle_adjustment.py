@@ -219,9 +219,12 @@ def _noise_per_observation(options: BAOptions, obs_sigma: Array | None, num_obs:
     return [models[k] for k in index.ravel().tolist()]
 
 
-def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, refine: str) -> None:
+def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, refine: str,
+                            constant: dict | None = None) -> None:  # fmt: skip
     """One projection factor per observation (``noise[m]`` its noise model); calibration
-    variables when intrinsics move."""
+    variables when intrinsics move.  ``constant`` (only with ``refine == "none"``): image ->
+    Pose3 of the images whose poses are constants, not variables: their observations are
+    factors on the point alone."""
     camera_models, camera_params, image_camera = cameras
     obs_image, obs_point, obs_xy = obs
     obs_camera = image_camera[obs_image].tolist()
@@ -230,8 +233,13 @@ def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, re
         cals = {
             g: gtsam.Cal3DS2(*ds2_from_params(camera_models[g], camera_params[g])) for g in groups
         }
+        constant = constant or {}
+        held = {i: gtsam.PinholeCameraCal3DS2(pose, cals[int(image_camera[i])]) for i, pose in constant.items()}
         for i, j, g, xy, nm in rows:
-            graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, nm, X(i), L(j), cals[g]))
+            if i in held:
+                graph.add(gtsam.TriangulationFactorCal3DS2(held[i], xy, nm, L(j)))
+            else:
+                graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, nm, X(i), L(j), cals[g]))
         return
     factor = {}  # one calibration variable per group, shared by its observations
     for g in groups:
@@ -302,13 +310,20 @@ def bundle_adjust(
     groups = sorted(set(image_camera[observed].tolist()))
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     poses = [pose3_from_cam_from_world(r, t) for r, t in zip(rotations, translations)]
+    # Held poses are constants when two or more are observed and the intrinsics are held too
+    # (a local BA): they fix the gauge, and the reduced camera system holds the free poses
+    # alone.  Otherwise they are variables under tight priors (_add_gauge).
+    held = sorted(set(options.fixed_poses) & set(observed.tolist()))
+    constant = {i: poses[i] for i in held} if refine == "none" and len(held) >= 2 else {}
     for i in observed.tolist():
-        values.insert(X(i), poses[i])
+        if i not in constant:
+            values.insert(X(i), poses[i])
     for j in seen_points.tolist():
         values.insertPoint3(L(j), points[j])
     noise = _noise_per_observation(options, obs_sigma, len(obs_image))
-    _add_projection_factors(graph, values, cameras, obs, groups, noise, refine)
-    _add_gauge(graph, values, poses, observed, options)
+    _add_projection_factors(graph, values, cameras, obs, groups, noise, refine, constant)
+    if not constant:
+        _add_gauge(graph, values, poses, observed, options)
     history: list[tuple[float, float]] = []
     optimizer = lm_optimizer(graph, values, options, history)
     built_s = time.perf_counter() - start
