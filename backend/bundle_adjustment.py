@@ -43,7 +43,7 @@ from backend.camera_projection import (  # noqa: F401  (re-exported: the BA's ca
     project,
     reprojection_errors,
 )
-from backend.gtsam_solver import lm_optimizer, optimize_or_keep, robust_noise
+from backend.gtsam_solver import gauss_newton_or_lm, lm_optimizer, optimize_or_keep, robust_noise
 
 logger = logging.getLogger(__name__)
 Array = np.ndarray
@@ -90,6 +90,9 @@ class BAOptions:
         observation (3.0 GB peak on a 500-image, 608k-observation problem, against 0.94 GB
         and 1.5x less time with METIS's nested dissection).  (GTSAM 4.3's Schur-mode
         SfmLevenbergMarquardtOptimizer was 1.7-1.8x slower on 100- and 400-image problems.)
+    optimizer: "lm" (Levenberg-Marquardt, default) or "gauss_newton_or_lm" (Gauss-Newton while
+        every step lowers the cost, else LM from the start: a third less time per iteration
+        from a good start, ``backend.gtsam_solver.gauss_newton_or_lm``).
     verbose: log every LM iteration at INFO (otherwise DEBUG).
     """
 
@@ -102,6 +105,7 @@ class BAOptions:
     relative_tolerance: float = 1e-5
     absolute_tolerance: float = 1e-6
     ordering: str = "auto"
+    optimizer: str = "lm"
     verbose: bool = False
 
 
@@ -325,10 +329,18 @@ def bundle_adjust(
     if not constant:
         _add_gauge(graph, values, poses, observed, options)
     history: list[tuple[float, float]] = []
-    optimizer = lm_optimizer(graph, values, options, history)
     built_s = time.perf_counter() - start
     logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
-    result, success = optimize_or_keep(optimizer, values, "bundle adjustment")
+    if options.optimizer == "gauss_newton_or_lm":
+        result, success, iterations, converged = gauss_newton_or_lm(graph, values, options, history,
+                                                                    "bundle adjustment")
+    elif options.optimizer == "lm":
+        optimizer = lm_optimizer(graph, values, options, history)
+        result, success = optimize_or_keep(optimizer, values, "bundle adjustment")
+        iterations = optimizer.iterations()
+        converged = iterations < options.max_iterations
+    else:
+        raise ValueError(f"unknown optimizer {options.optimizer!r}; use 'lm' or 'gauss_newton_or_lm'")
     success = success and graph.error(result) <= graph.error(values)
     rot_out, trans_out, pts_out = rotations.copy(), translations.copy(), points.copy()
     for i in set(observed.tolist()) - set(options.fixed_poses):
@@ -349,11 +361,11 @@ def bundle_adjust(
         initial_rms=_rms(initial_err),
         final_rms=_rms(final_err),
         final_mean_error=float(final_err.mean()) if len(final_err) else 0.0,
-        iterations=optimizer.iterations(),
+        iterations=iterations,
         time_s=time.perf_counter() - start,
         num_observations=len(obs_image),
         success=success,
-        converged=optimizer.iterations() < options.max_iterations,
+        converged=converged,
         last_decrease=(history[-1][0] - history[-1][1]) / max(history[-1][0], 1e-300) if history else 0.0,
     )
     summary = f"{res.initial_rms:.4f} -> {res.final_rms:.4f} px, {res.iterations} iterations"

@@ -47,9 +47,9 @@ def robust_noise(loss: str, scale: float, sigma: float = 1.0) -> gtsam.noiseMode
 AUTO_METIS_OBSERVATIONS = 100_000
 
 
-def lm_optimizer(graph, values, options: BAOptions, history: list | None = None) -> gtsam.LevenbergMarquardtOptimizer:
-    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log;
-    ``history`` (a list) receives each iteration's ``(cost before, cost after)``."""
+def _configure(params, graph, values, options: BAOptions, history: list | None, name: str):
+    """The options' ordering, tolerances and an iteration log (``history``, a list, receives
+    each iteration's ``(cost before, cost after)``) on GTSAM optimiser ``params``."""
     if options.ordering not in ("auto", "points_first", "metis", "colamd"):
         raise ValueError(
             f"unknown ordering {options.ordering!r}; use 'auto', 'points_first', 'metis' or 'colamd'"
@@ -57,7 +57,6 @@ def lm_optimizer(graph, values, options: BAOptions, history: list | None = None)
     ordering_name = options.ordering
     if ordering_name == "auto":
         ordering_name = "metis" if graph.size() > AUTO_METIS_OBSERVATIONS else "points_first"
-    params = gtsam.LevenbergMarquardtParams()
     if ordering_name == "points_first":
         # The classic BA ordering: eliminating every point first leaves the reduced camera
         # system (a Schur complement); no graph partitioning to compute.
@@ -72,12 +71,45 @@ def lm_optimizer(graph, values, options: BAOptions, history: list | None = None)
     level = logging.INFO if options.verbose else logging.DEBUG
 
     def hook(iteration: int, before: float, after: float) -> None:
-        logger.log(level, "LM iteration %d: cost %.6g -> %.6g", iteration, before, after)
+        logger.log(level, "%s iteration %d: cost %.6g -> %.6g", name, iteration, before, after)
         if history is not None:
             history.append((before, after))
 
     params.iterationHook = hook
+    return params
+
+
+def lm_optimizer(graph, values, options: BAOptions, history: list | None = None) -> gtsam.LevenbergMarquardtOptimizer:
+    """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log;
+    ``history`` (a list) receives each iteration's ``(cost before, cost after)``."""
+    params = _configure(gtsam.LevenbergMarquardtParams(), graph, values, options, history, "LM")
     return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+
+
+def gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history: list,
+                       what: str) -> tuple[gtsam.Values, bool, int, bool]:  # fmt: skip
+    """Gauss-Newton while every step lowers the cost; otherwise (a step that raised it, or an
+    indeterminant system) Levenberg-Marquardt from ``values`` again.  ``(result, success,
+    iterations, converged)``: iterations of both, converged when the one that gave the result
+    stopped before ``options.max_iterations``.  From a good start (a local BA after PnP and
+    triangulation) Gauss-Newton takes the same steps as LM, whose damping and step control
+    cost about a third of each iteration there; LM remains for starts where the quadratic
+    model misleads (a young model's intrinsics)."""
+    trial: list[tuple[float, float]] = []
+    params = _configure(gtsam.GaussNewtonParams(), graph, values, options, trial, "Gauss-Newton")
+    optimizer = gtsam.GaussNewtonOptimizer(graph, values, params)
+    try:
+        with _quiet_stdout(what):
+            result = optimizer.optimize()
+        if all(after <= before for before, after in trial):
+            history.extend(trial)
+            return result, True, optimizer.iterations(), optimizer.iterations() < options.max_iterations
+        logger.debug("%s: a Gauss-Newton step raised the cost; Levenberg-Marquardt instead", what)
+    except RuntimeError as exc:
+        logger.debug("%s: Gauss-Newton failed (%s); Levenberg-Marquardt instead", what, exc)
+    lm = lm_optimizer(graph, values, options, history)
+    result, success = optimize_or_keep(lm, values, what)
+    return result, success, len(trial) + lm.iterations(), lm.iterations() < options.max_iterations
 
 
 @contextlib.contextmanager

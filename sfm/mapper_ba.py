@@ -63,7 +63,7 @@ class BundleAdjustmentSteps:
         return rows[keep], owner[keep]
 
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
-                       tolerance: float = 1e-5, parts: int = 1) -> None:
+                       tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm") -> None:
         rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
@@ -85,7 +85,8 @@ class BundleAdjustmentSteps:
             self.R[order], self.t[order], self.track_xyz[tracks],
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
             BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
-                      refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance),
+                      refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance,
+                      optimizer=optimizer),
             seed=self.opts.seed, obs_sigma=self.obs_sigma[rows],
         )
         self.R[order[:n_free]] = result.rotations[:n_free]
@@ -111,7 +112,8 @@ class BundleAdjustmentSteps:
         neigh[i] = 0
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
-        self._bundle_adjust(free, tracks, "none", 25, tolerance=GROWING_TOLERANCE)
+        # Gauss-Newton first: the new image's PnP pose and fresh points are a good start
+        self._bundle_adjust(free, tracks, "none", 25, tolerance=GROWING_TOLERANCE, optimizer="gauss_newton_or_lm")
         self.filter_observations(tracks)
 
     def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:

@@ -181,6 +181,47 @@ def test_last_decrease_says_where_the_tolerance_stopped_lm():
     assert one.last_decrease > 0.5
 
 
+def test_gauss_newton_first_matches_lm_from_a_good_start():
+    truth = ring_scene(noise=0.5, seed=5)
+    start = perturb(truth, keep=(0, 4))
+    options = BAOptions(fixed_poses=(0, 4), refine_intrinsics="none")
+    lm = bundle_adjust(**start, options=options)
+    gn = bundle_adjust(**start, options=replace(options, optimizer="gauss_newton_or_lm"))
+    assert gn.success and gn.converged and gn.iterations == lm.iterations
+    np.testing.assert_allclose(gn.points, lm.points, atol=1e-7)
+    np.testing.assert_allclose(gn.translations, lm.translations, atol=1e-7)
+    assert gn.final_rms == pytest.approx(lm.final_rms, rel=1e-9)
+
+
+@pytest.mark.parametrize("failure", ["cost_rose", "indeterminant"])
+def test_gauss_newton_first_falls_back_to_lm(monkeypatch, failure):
+    """A Gauss-Newton step that raises the cost, or a GTSAM error, sends the BA to LM from the
+    start: the result is LM's."""
+    import backend.gtsam_solver as solver
+
+    class Failing:
+        def __init__(self, graph, values, params):
+            self.params, self.values = params, values
+
+        def optimize(self):
+            if failure == "indeterminant":
+                raise RuntimeError("Indeterminant linear system")
+            self.params.iterationHook(1, 10.0, 20.0)  # the step raised the cost
+            return self.values
+
+        def iterations(self):
+            return 1
+
+    truth = ring_scene(noise=0.5, seed=5)
+    start = perturb(truth)
+    lm = bundle_adjust(**start, options=BAOptions(refine_intrinsics="focal"))
+    monkeypatch.setattr(solver.gtsam, "GaussNewtonOptimizer", Failing)
+    gn = bundle_adjust(**start, options=BAOptions(refine_intrinsics="focal", optimizer="gauss_newton_or_lm"))
+    assert gn.success and gn.final_rms == lm.final_rms
+    np.testing.assert_array_equal(gn.points, lm.points)
+    assert gn.iterations == lm.iterations + (failure == "cost_rose")
+
+
 def test_robust_loss_resists_gross_outliers():
     """5% of the observations moved by 50 px; sigma 0.5 px elsewhere (noise floor ~0.02 deg)."""
     truth = ring_scene(model=LONG_FOCAL, n_points=500, noise=0.5, seed=7)
@@ -321,6 +362,8 @@ def test_bad_options_raise():
         bundle_adjust(**{**scene, "obs_image": scene["obs_image"][:0]})
     with pytest.raises(ValueError, match="not supported"):
         bundle_adjust(**{**scene, "camera_models": ["FISHEYE"]})
+    with pytest.raises(ValueError, match="optimizer"):
+        bundle_adjust(**scene, options=BAOptions(optimizer="dogleg"))
 
 
 def test_observation_sigmas_weigh_the_observations():
