@@ -14,11 +14,10 @@ KD-tree (4 trees, 64 checks), approximate (about 97 % of the exact matches), see
 ``cv2.setRNGSeed`` so it is deterministic. ``auto`` takes brute up to 2^27 descriptor pairs
 (about 11.6k x 11.6k features) and flann above, where its n log n wins.
 
-Parallelism: a process pool (``sfm.process_pool``; scripts need the ``if __name__ == "__main__"`` guard) of
-``num_workers``; each worker calls ``cv2.setNumThreads(1)``, limits BLAS to one thread, and reads
-keypoints and descriptors itself from the database (read-only, an LRU cache of images), so only
-pair ids and results travel. A worker that dies raises ``BrokenProcessPool``; finished batches
-stay in the database.
+Parallelism: a process pool (``sfm.process_pool``; scripts need the ``if __name__ == "__main__"``
+guard) of ``num_workers``, each with ``cv2.setNumThreads(1)`` and one BLAS thread, reading its
+images' features from the database (read-only, an LRU cache), so only pair ids and results
+travel. A worker that dies raises ``BrokenProcessPool``; finished batches stay in the database.
 Results are identical for any number of workers: every random choice is seeded by (seed, pair).
 """
 
@@ -62,14 +61,12 @@ class MatchOptions:
       exhaustive_threshold images, else retrieval)
     top_k: retrieval keeps each image's top_k most similar images (VLAD)
     sequential: also match each image with the next N images in name order (0: off)
-    exhaustive_threshold: number of images from which auto switches to retrieval
     matcher: nearest-neighbour search, one of auto|brute|flann (brute: exact; flann: KD-tree,
       approximate; auto: brute unless both images have many features)
     max_ratio: Lowe's ratio test on descriptor distances (COLMAP's max_ratio)
     cross_check: keep only mutual nearest neighbours
     max_error_px: verification inlier threshold in pixels (Sampson distance, H transfer error)
-    confidence: RANSAC confidence of verification
-    max_iterations: maximum RANSAC iterations of verification
+    confidence, max_iterations: RANSAC confidence and iteration cap of verification
     min_num_inliers: a pair with fewer inliers is not verified
     max_h_inlier_ratio: H inliers / E-or-F inliers above this mark a pair planar or panoramic
     num_workers: worker processes (0: all cores)
@@ -183,13 +180,10 @@ def match_descriptors(
     """(M, 2) int64 matches (index in 1, index in 2): nearest neighbours passing Lowe's ratio
     test on Euclidean distances of unit-normalised descriptors, the mutual check when
     ``cross_check``, and ``distance <= max_distance`` when given. Sorted by index in 1.
-    ``normalized``: both arrays are already :func:`normalize_descriptors` output (a caller
-    matching each image against many keeps them so: normalising both per pair took a quarter
-    of the time of matching 1,343 x 1,343 descriptors)."""
-    if normalized:
-        d1, d2 = descriptors1, descriptors2
-    else:
-        d1, d2 = normalize_descriptors(descriptors1), normalize_descriptors(descriptors2)
+    ``normalized``: both are :func:`normalize_descriptors` output already (the match stage
+    caches them so; normalising per pair took a quarter of a 1,343 x 1,343 match)."""
+    unit = (lambda d: d) if normalized else normalize_descriptors
+    d1, d2 = unit(descriptors1), unit(descriptors2)
     if len(d1) == 0 or len(d2) == 0:
         return np.zeros((0, 2), np.int64)
     if matcher == "auto":

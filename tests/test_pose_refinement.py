@@ -1,4 +1,4 @@
-"""Pose-only refinement (refine_pose in backend/bundle_adjustment.py) on the synthetic ring
+"""Pose-only refinement (refine_pose in backend/pose_refinement.py) on the synthetic ring
 scenes of _helpers_bundle_adjustment.py."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 from _helpers_bundle_adjustment import perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
-from backend.bundle_adjustment import refine_pose
+from backend.pose_refinement import refine_pose
 
 
 def test_refine_pose_recovers_a_perturbed_pose():
