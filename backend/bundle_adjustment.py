@@ -58,7 +58,7 @@ _EXTRA_DS2 = {
     "RADIAL": [5, 6],
     "OPENCV": [5, 6, 7, 8],
 }
-_HOLD_SIGMA = 1e-7  # relative sigma of the priors that hold parameters and the gauge pose
+HOLD_SIGMA = 1e-7  # relative sigma of the priors that hold parameters and the gauge pose
 _TIE_SIGMA = 1e-6  # relative sigma of fx - fy = 0 (tighter makes LM stall)
 _SCALE_SIGMA = 1e-4  # relative sigma of the scale prior: a pure gauge, so its weight is moot
 
@@ -153,7 +153,7 @@ def cam_from_world_from_pose3(pose: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray
     return rotation, -rotation @ pose.translation()
 
 
-def _rms(err: Array) -> float:
+def rms(err: Array) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
 
 
@@ -193,7 +193,7 @@ def _add_calibration(graph, values, key: int, model: str, params: Array, refine:
         tie_noise = gtsam.noiseModel.Isotropic.Sigma(1, _TIE_SIGMA * ds2[0])
         graph.add(gtsam.CustomFactor(tie_noise, [key], tie))
     if any(held):
-        precisions = np.where(held, 1.0 / (_HOLD_SIGMA * sigmas) ** 2, 0.0)
+        precisions = np.where(held, 1.0 / (HOLD_SIGMA * sigmas) ** 2, 0.0)
         graph.add(prior(key, cal, gtsam.noiseModel.Diagonal.Precisions(precisions)))
 
 
@@ -258,13 +258,14 @@ def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, re
         graph.add(factor[g](xy, nm, X(i), L(j), K(g)))
 
 
-def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions) -> None:
-    """Priors on held poses, and the gauge (anchor pose and scale), see :class:`BAOptions`."""
+def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions, held: list[int]) -> None:
+    """Priors on the ``held`` poses (the observed ones of ``options.fixed_poses``), and the
+    gauge (anchor pose and scale), see :class:`BAOptions`."""
     centres = np.array([pose.translation() for pose in poses])[observed]
     spread = np.median(np.linalg.norm(centres - centres.mean(0), axis=1))
     scale = max(float(spread), 1e-9)
-    pose_sigmas = _HOLD_SIGMA * np.array([1, 1, 1, scale, scale, scale])
-    anchors = [i for i in options.fixed_poses if i in set(observed.tolist())]
+    pose_sigmas = HOLD_SIGMA * np.array([1, 1, 1, scale, scale, scale])
+    anchors = list(held)
     if not anchors:
         anchor = options.gauge_pose if options.gauge_pose is not None else int(observed[0])
         if anchor not in set(observed.tolist()):
@@ -329,7 +330,7 @@ def bundle_adjust(
     noise = _noise_per_observation(options, obs_sigma, len(obs_image))
     _add_projection_factors(graph, values, cameras, obs, groups, noise, refine, constant)
     if not constant:
-        _add_gauge(graph, values, poses, observed, options)
+        _add_gauge(graph, values, poses, observed, options, held)
     history: list[tuple[float, float]] = []
     built_s = time.perf_counter() - start
     logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
@@ -360,8 +361,8 @@ def bundle_adjust(
         translations=trans_out,
         points=pts_out,
         camera_params=tuple(params_out),
-        initial_rms=_rms(initial_err),
-        final_rms=_rms(final_err),
+        initial_rms=rms(initial_err),
+        final_rms=rms(final_err),
         final_mean_error=float(final_err.mean()) if len(final_err) else 0.0,
         iterations=iterations,
         time_s=time.perf_counter() - start,

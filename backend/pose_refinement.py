@@ -10,13 +10,13 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from backend.bundle_adjustment import (
-    _HOLD_SIGMA,
+    HOLD_SIGMA,
     BAOptions,
-    _rms,
     cam_from_world_from_pose3,
     ds2_from_params,
     pose3_from_cam_from_world,
     reprojection_errors,
+    rms,
 )
 from backend.gtsam_solver import lm_optimizer, optimize_or_keep, robust_noise
 
@@ -62,7 +62,7 @@ def refine_pose(
     values.insert(X(0), pose3_from_cam_from_world(rotation, translation))
     noise = robust_noise(loss, loss_scale)
     scale = max(float(np.linalg.norm(points - points.mean(0), axis=1).max(initial=0.0)), 1e-9)
-    point_noise = gtsam.noiseModel.Isotropic.Sigma(3, _HOLD_SIGMA * scale)
+    point_noise = gtsam.noiseModel.Isotropic.Sigma(3, HOLD_SIGMA * scale)
     for j, (point, xy) in enumerate(zip(points, obs_xy)):
         values.insertPoint3(L(j), point)
         graph.add(gtsam.GenericProjectionFactorCal3DS2(xy, noise, X(0), L(j), cal))
@@ -77,4 +77,4 @@ def refine_pose(
     result, success = optimize_or_keep(optimizer, values, "pose refinement")
     rot, trans = cam_from_world_from_pose3(result.atPose3(X(0)))
     err = reprojection_errors(*cameras, rot[None], trans[None], points, *obs)
-    return PoseRefineResult(rot, trans, _rms(err0), _rms(err), optimizer.iterations(), success)
+    return PoseRefineResult(rot, trans, rms(err0), rms(err), optimizer.iterations(), success)
