@@ -20,11 +20,18 @@ def test_end_to_end_table_has_both_pipelines_evaluated(tmp_path, capsys):
     write_rendered_scene(tmp_path / "scene", RenderOptions(num_images=10, seed=4))
     gt = tmp_path / "scene" / "gt" / "cameras_gt_opencv.txt"
     assert main(["--images", str(tmp_path / "scene" / "images"), "--gt", str(gt), "--no-recording",
-                 "--out", str(tmp_path / "out")]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
+                 "--repeat", "2", "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    lines = [line for line in out.splitlines() if line.startswith("| ")]
     header = [c.strip() for c in lines[0].strip("|").split("|")]
     rows = [dict(zip(header, (c.strip() for c in line.strip("|").split("|")))) for line in lines[1:]]
-    assert [r["method"].split()[0] for r in rows] == ["graphsfm", "pycolmap"]
+    # two runs (the second starts with COLMAP), each listed graphsfm first, in its own folder
+    assert [(r["run"], r["method"].split()[0]) for r in rows] == [
+        ("1", "graphsfm"), ("1", "pycolmap"), ("2", "graphsfm"), ("2", "pycolmap")
+    ]
+    assert (tmp_path / "out" / "run2" / "graphsfm" / "sparse" / "0").is_dir()
+    ratio_line = next(line for line in out.splitlines() if line.startswith("total time graphsfm / COLMAP:"))
+    assert "median" in ratio_line and len(ratio_line.split(":")[1].split("(")[0].split(",")) == 2
     for r in rows:
         assert int(r["registered"]) == 10  # a 10-image rendered arc: both register everything
         assert float(r["med_rot_deg"]) < 0.5

@@ -1,7 +1,7 @@
 """End to end on an image folder: ``graphsfm reconstruct`` against COLMAP, in one run.
 
     python tools/bench_endtoend.py --images DIR [--gt TABLE] [--intrinsics FILE]
-                                   [--max-cluster-size S] [--no-recording] [--out DIR]
+                                   [--max-cluster-size S] [--no-recording] [--repeat N] [--out DIR]
 
 graphsfm: ``sfm.reconstruct(DIR, OUT/graphsfm, ...)`` with the defaults of ``graphsfm
 reconstruct`` (every stage, the Rerun recording included unless ``--no-recording``; with
@@ -10,12 +10,15 @@ reconstruct`` (every stage, the Rerun recording included unless ``--no-recording
 number of threads) then ``incremental_mapping`` on that database. Both start from nothing in
 fresh workspaces. Each side's largest model is evaluated against ``--gt``. Prints a Markdown
 table (time per stage and in all, registered images, points, median rotation error, AUC) and
-the ratio of the total times.
+the ratio of the total times.  ``--repeat N`` runs both sides N times, alternating which goes
+first (a shared machine drifts by tens of percent within minutes), prints every run's rows and
+ratio, and the median ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 import zlib  # noqa: F401 - before pycolmap (pycolmap first breaks later zlib use)
@@ -70,8 +73,12 @@ def main(argv: list[str] | None = None) -> int:
                         "gets one PINHOLE camera when the file has one set of values)")
     parser.add_argument("--max-cluster-size", type=int, help="graphsfm's --max-cluster-size")
     parser.add_argument("--no-recording", action="store_true", help="graphsfm without the Rerun recording")
+    parser.add_argument("--repeat", type=int, default=1, help="run both sides N times, alternating which goes "
+                        "first; prints each ratio and the median")
     parser.add_argument("--out", type=Path, help="output folder (default: a new temporary folder)")
     args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
     setup = prepare(args.images, args.out, "graphsfm_bench_endtoend_")
     if setup is None:
         return 2
@@ -79,18 +86,24 @@ def main(argv: list[str] | None = None) -> int:
     gt = read_gt_table(args.gt) if args.gt else None
     options = {k: v for k, v in (("intrinsics", args.intrinsics), ("max_cluster_size", args.max_cluster_size))
                if v is not None}
-    runs = [run_graphsfm(args.images, out / "graphsfm", options, not args.no_recording),
-            run_peer(args.images, out / "colmap", args.intrinsics, threads)]
-    rows = []
-    for run in runs:
-        r = row(run["label"], run["model"], run["total"], gt)
-        rows.append({"method": r.pop("method"), **{k: round(v, 1) for k, v in run["stages"].items()}, **r})
+    rows, ratios = [], []
+    for k in range(args.repeat):
+        where = out if args.repeat == 1 else out / f"run{k + 1}"
+        ours = lambda: run_graphsfm(args.images, where / "graphsfm", options, not args.no_recording)  # noqa: E731
+        peer = lambda: run_peer(args.images, where / "colmap", args.intrinsics, threads)  # noqa: E731
+        runs = [ours(), peer()] if k % 2 == 0 else list(reversed([peer(), ours()]))
+        for run in runs:
+            r = row(run["label"], run["model"], run["total"], gt)
+            run_column = {"run": k + 1} if args.repeat > 1 else {}
+            rows.append({**run_column, "method": r.pop("method"), **{k: round(v, 1) for k, v in run["stages"].items()}, **r})
+        ratios.append(runs[0]["total"] / runs[1]["total"])
     keys = list(dict.fromkeys(k for r in rows for k in r))
     print(f"## End to end: {args.images} ({threads} threads each; workspaces in {out})\n")
     print("| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
     for r in rows:
         print("| " + " | ".join(str(r.get(k, "")) for k in keys) + " |")
-    print(f"\ntotal time graphsfm / COLMAP: {runs[0]['total'] / runs[1]['total']:.2f}")
+    print(f"\ntotal time graphsfm / COLMAP: {', '.join(f'{x:.2f}' for x in ratios)}"
+          + (f" (median {statistics.median(ratios):.2f})" if len(ratios) > 1 else ""))
     return 0
 
 
