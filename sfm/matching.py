@@ -15,10 +15,9 @@ KD-tree (4 trees, 64 checks), approximate (about 97 % of the exact matches), see
 (about 11.6k x 11.6k features) and flann above, where its n log n wins.
 
 Parallelism: a process pool (``sfm.process_pool``; scripts need the ``if __name__ == "__main__"``
-guard) of ``num_workers``, each with ``cv2.setNumThreads(1)`` and one BLAS thread, reading its
-images' features from the database (read-only, an LRU cache), so only pair ids and results
-travel. A worker that dies raises ``BrokenProcessPool``; finished batches stay in the database.
-Results are identical for any number of workers: every random choice is seeded by (seed, pair).
+guard) of ``num_workers`` (one OpenCV and BLAS thread each) reading features from the database
+(an LRU cache): only pair ids and results travel. A dead worker raises ``BrokenProcessPool``;
+finished batches stay. Any number of workers gives the same results (seeds per pair).
 """
 
 from __future__ import annotations
@@ -129,7 +128,7 @@ def normalize_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
-def _nearest_brute(d1: np.ndarray, d2: np.ndarray, block: int = 128):
+def _nearest_brute(d1: np.ndarray, d2: np.ndarray, block: int = 128, d2t: np.ndarray | None = None):
     """Exact: best and second-best squared distances 1->2, and whether each row's best match
     is also the nearest of its partner among all rows of 1 (the mutual check; a tie counts).
 
@@ -141,7 +140,7 @@ def _nearest_brute(d1: np.ndarray, d2: np.ndarray, block: int = 128):
     sim1 = np.full(n1, -np.inf, np.float32)
     sim2 = np.full(n1, -np.inf, np.float32)
     col_max = np.full(len(d2), -np.inf, np.float32)
-    d2t = np.ascontiguousarray(d2.T)
+    d2t = np.ascontiguousarray(d2.T) if d2t is None else d2t
     for start in range(0, n1, block):
         sim = d1[start : start + block] @ d2t
         rows = np.arange(sim.shape[0])
@@ -175,13 +174,14 @@ def _nearest_flann(d1: np.ndarray, d2: np.ndarray, seed: int):
 def match_descriptors(
     descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio: float = 0.8,
     cross_check: bool = True, matcher: str = "auto", max_distance: float | None = None,
-    seed: int = 0, normalized: bool = False,
+    seed: int = 0, normalized: bool = False, transposed2: np.ndarray | None = None,
 ) -> np.ndarray:  # fmt: skip
     """(M, 2) int64 matches (index in 1, index in 2): nearest neighbours passing Lowe's ratio
     test on Euclidean distances of unit-normalised descriptors, the mutual check when
     ``cross_check``, and ``distance <= max_distance`` when given. Sorted by index in 1.
-    ``normalized``: both are :func:`normalize_descriptors` output already (the match stage
-    caches them so; normalising per pair took a quarter of a 1,343 x 1,343 match)."""
+    ``normalized``: both are :func:`normalize_descriptors` output already, and ``transposed2``
+    (optional) is ``descriptors2.T`` C-contiguous: the match stage caches both per image
+    (normalising and transposing per pair took a third of a 1,343 x 1,343 match)."""
     unit = (lambda d: d) if normalized else normalize_descriptors
     d1, d2 = unit(descriptors1), unit(descriptors2)
     if len(d1) == 0 or len(d2) == 0:
@@ -191,7 +191,7 @@ def match_descriptors(
     if matcher == "flann" and min(len(d1), len(d2)) >= 2:
         best, dist2_1, dist2_2, mutual = _nearest_flann(d1, d2, seed)
     else:
-        best, dist2_1, dist2_2, mutual = _nearest_brute(d1, d2)
+        best, dist2_1, dist2_2, mutual = _nearest_brute(d1, d2, d2t=transposed2 if normalized else None)
     keep = dist2_1 < (max_ratio**2) * dist2_2
     if cross_check:
         keep &= mutual
@@ -211,32 +211,34 @@ class _PairProcessor:
         id; ``cameras``: camera id -> record."""
         self.load, self.camera_of, self.cameras, self.options = load, camera_of, cameras, options
         self.verify_options = options.verify_options()
-        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
         self._cache_bytes = 0
 
-    def features(self, image_id: int) -> tuple[np.ndarray, np.ndarray]:
-        """(keypoints, unit-normalised float32 descriptors) of an image."""
+    def features(self, image_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(keypoints, unit float32 descriptors, their C-contiguous transpose) of an image."""
         if image_id in self._cache:
             self._cache.move_to_end(image_id)
             return self._cache[image_id]
         keypoints, descriptors = self.load(image_id)
-        item = (keypoints, normalize_descriptors(descriptors))
+        unit = normalize_descriptors(descriptors)
+        item = (keypoints, unit, np.ascontiguousarray(unit.T))
         self._cache[image_id] = item
-        self._cache_bytes += item[0].nbytes + item[1].nbytes
+        self._cache_bytes += sum(a.nbytes for a in item)
         while self._cache_bytes > CACHE_BYTES and len(self._cache) > 2:
             _, old = self._cache.popitem(last=False)
-            self._cache_bytes -= old[0].nbytes + old[1].nbytes
+            self._cache_bytes -= sum(a.nbytes for a in old)
         return item
 
     def __call__(
         self, pair: tuple[int, int]
     ) -> tuple[int, int, np.ndarray, TwoViewGeometry, float, float]:
         id1, id2 = int(pair[0]), int(pair[1])
-        (kp1, d1), (kp2, d2) = self.features(id1), self.features(id2)
+        (kp1, d1, _), (kp2, d2, d2t) = self.features(id1), self.features(id2)
         seed = pair_seed(self.options.seed, id1, id2)
         o = self.options
         t0 = time.perf_counter()
-        matches = match_descriptors(d1, d2, o.max_ratio, o.cross_check, o.matcher, seed=seed, normalized=True)
+        matches = match_descriptors(d1, d2, o.max_ratio, o.cross_check, o.matcher, seed=seed, normalized=True,
+                                    transposed2=d2t)  # fmt: skip
         t1 = time.perf_counter()
         cam1, cam2 = self.cameras[self.camera_of[id1]], self.cameras[self.camera_of[id2]]
         geometry = verify_pair(kp1, kp2, matches, cam1, cam2, self.verify_options, seed)
@@ -249,12 +251,9 @@ _WORKER: _PairProcessor | None = None
 def _init_worker(db_path: str, camera_of, cameras, options: MatchOptions) -> None:
     global _WORKER
     cv2.setNumThreads(1)
-    try:
-        from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_limits  # scikit-learn's dependency
 
-        threadpool_limits(1)
-    except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
-        pass
+    threadpool_limits(1)
     _WORKER = _PairProcessor(_db_loader(Database(db_path, readonly=True)), camera_of, cameras, options)
 
 
