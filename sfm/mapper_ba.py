@@ -33,8 +33,9 @@ _TRIANGULATION_ROWS = 250_000
 # and of the median rotation error, in 0-20% less mapping time.  1e-3 for the last BA too gave
 # the same lund_door and temple_ring models but a 20% larger median rotation error on the
 # 2,000-image aerial scene (0.0219 instead of 0.0182 deg), whose nearly flat cost still moves
-# the poses at 1e-3 per iteration.  COLMAP stops its global BA on a gradient tolerance
-# instead (Ceres, 1 in cost units, 50 iterations).
+# the poses at 1e-3 per iteration.  A final BA that re-triangulation and another BA follow
+# stops at 1e-3 (``sfm.incremental._final_refinement``).  COLMAP stops its global BA on a
+# gradient tolerance instead (Ceres, 1 in cost units, 50 iterations).
 GROWING_TOLERANCE = 1e-3
 FINAL_TOLERANCE = 1e-4
 
@@ -92,6 +93,7 @@ class BundleAdjustmentSteps:
         self.t[order[:n_free]] = result.translations[:n_free]
         self.track_xyz[tracks] = result.points
         self.last_ba_rms = float(result.final_rms)
+        self.last_ba_decrease = float(result.last_decrease)
         if refine != "none":
             for c, p in zip(cams, result.camera_params):
                 self.params[c] = np.asarray(p, dtype=np.float64)

@@ -96,6 +96,7 @@ class MapperState(BundleAdjustmentSteps):
         self.fail_visible = np.zeros(n, dtype=np.int64)
         self.structureless_failed: dict[int, int] = {}
         self.last_ba_rms = float("nan")
+        self.last_ba_decrease = 0.0  # the relative cost decrease of the last BA's last iteration
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self._update_normalised()
 

@@ -1,5 +1,5 @@
-"""Steps of the incremental mapper: the initial-pair search's early stop and the order of the
-final refinement."""
+"""Steps of the incremental mapper: the initial-pair search's early stop and the rule for a
+second final BA."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import numpy as np
 
 import sfm.incremental as incremental
 from sfm.incremental import (
+    MAX_REFINEMENT_CHANGE,
     _final_refinement,
     _try_initial_pair,
     two_view_score,
 )
-from sfm.mapper_ba import FINAL_TOLERANCE
+from sfm.mapper_ba import FINAL_TOLERANCE, GROWING_TOLERANCE
 from sfm.mapper_input import MapperOptions
 from sfm.mapper_state import MapperState
 from sfm.mapping import load_payloads
@@ -65,25 +66,39 @@ def test_initial_pair_search_stops_early_with_the_full_search_winner(tmp_path, m
 
 
 class _FakeState:
-    """What ``_final_refinement`` touches, recording each call."""
+    """What ``_final_refinement`` touches: records the final BAs' tolerances; each BA's last LM
+    iteration lowered the cost by ``decrease``; re-triangulation re-admits ``gain`` observations."""
 
-    def __init__(self) -> None:
-        self.calls = []
+    def __init__(self, num_observations: int, gain: int, decrease: float) -> None:
+        self.obs_inlier = np.zeros(num_observations + gain + 10, bool)
+        self.obs_inlier[:num_observations] = True
+        self.gain, self.decrease, self.tolerances = gain, decrease, []
+        self.last_ba_decrease = 0.0
+        self.payload = types.SimpleNamespace(label="C0")
 
     def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
-        self.calls.append(("final BA", tolerance) if final else ("subset BA",))
+        assert final
+        self.tolerances.append(tolerance)
+        self.last_ba_decrease = self.decrease
 
     def retriangulate(self) -> int:
-        self.calls.append(("retriangulate",))
-        return 0
+        start = int(self.obs_inlier.sum())
+        self.obs_inlier[start : start + self.gain] = True
+        return self.gain
 
 
-def test_final_refinement_is_subset_ba_then_retriangulation_then_one_final_ba():
-    """The poses move (a subset BA) before re-triangulation, and the last BA, on every track
-    to the final tolerance, sees what re-triangulation added."""
-    state = _FakeState()
-    _final_refinement(state)
-    assert state.calls == [("subset BA",), ("retriangulate",), ("final BA", FINAL_TOLERANCE)]
+def test_second_final_ba_when_retriangulation_changed_enough_or_the_first_stopped_early():
+    n = 100_000
+    limit = int(MAX_REFINEMENT_CHANGE * n)  # 50 observations
+    converged, early = 0.5 * FINAL_TOLERANCE, 0.5 * (FINAL_TOLERANCE + GROWING_TOLERANCE)
+    for gain, decrease, expected in ((0, converged, 1), (3, converged, 1), (limit, converged, 1),
+                                     (limit + 1, converged, 2), (n // 100, converged, 2),
+                                     (0, early, 2), (limit, early, 2)):
+        state = _FakeState(n, gain, decrease)
+        _final_refinement(state)
+        assert len(state.tolerances) == expected, (gain, decrease, state.tolerances)
+        # the first stops at the growing model's tolerance; a second one at the final one
+        assert state.tolerances == [GROWING_TOLERANCE, FINAL_TOLERANCE][:expected]
 
 
 def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
