@@ -27,21 +27,25 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
     tr = state.obs_track[rows]
     order = np.argsort(tr, kind="stable")
     rows, tr = rows[order], tr[order]
-    bounds = np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True])
-    ids = np.asarray(state.payload.image_ids)
-    next_id = 1
-    for s, e in itertools.pairwise(bounds):
-        if e - s < 2:
-            continue
-        r = rows[s:e]
-        track = list(zip(ids[state.obs_image[r]].tolist(), state.obs_kp[r].tolist()))
-        color = np.full(3, 128, np.uint8)
+    lengths = np.diff(np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True]))
+    kept = np.repeat(lengths >= 2, lengths)  # a point needs two inlier rows
+    rows, tr, lengths = rows[kept], tr[kept], lengths[lengths >= 2]
+    starts = np.r_[0, np.cumsum(lengths)]
+    point_of_row = np.repeat(np.arange(1, len(lengths) + 1), lengths)
+    image_of_row = np.asarray(state.payload.image_ids)[state.obs_image[rows]]
+    kp_of_row = state.obs_kp[rows]
+    for iid in np.unique(image_of_row).tolist():
+        sel = image_of_row == iid
+        recon.images[iid].point3D_ids[kp_of_row[sel]] = point_of_row[sel]
+    xyz = state.track_xyz[tr[starts[:-1]]]
+    grey = np.full(3, 128, np.uint8)
+    images, kps = image_of_row.tolist(), kp_of_row.tolist()
+    for k, (s, e) in enumerate(itertools.pairwise(starts.tolist())):
+        color = grey
         if state.payload.colors is not None:
-            color = np.asarray(state.payload.colors[state.obs_image[r[0]]][state.obs_kp[r[0]]], dtype=np.uint8)
-        recon.points3D[next_id] = Point3D(state.track_xyz[tr[s]].copy(), track, color)
-        for (iid, kp) in track:
-            recon.images[iid].point3D_ids[kp] = next_id
-        next_id += 1
+            color = np.asarray(state.payload.colors[state.obs_image[rows[s]]][kps[s]], dtype=np.uint8)
+        recon.points3D[k + 1] = Point3D(xyz[k], list(zip(images[s:e], kps[s:e])), color)
+    next_id = len(lengths) + 1
     recon._next_point_id = next_id
     recon.update_point_errors()
     return recon

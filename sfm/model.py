@@ -206,12 +206,20 @@ class Reconstruction:
     def reprojection_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """Per observation: ``(point3D_ids, error_px)``; vectorised per image."""
         all_pids, all_err = [], []
+        known = np.fromiter(self.points3D.keys(), dtype=np.int64, count=len(self.points3D))
+        order = np.argsort(known)
+        known = known[order]
+        xyz_all = np.array([p.xyz for p in self.points3D.values()], dtype=np.float64).reshape(-1, 3)[order]
         for image in self.images.values():
             idx = np.flatnonzero(image.point3D_ids != INVALID_POINT3D)
             if len(idx) == 0:
                 continue
             pids = image.point3D_ids[idx]
-            xyz = np.stack([self.points3D[p].xyz for p in pids])
+            at = np.searchsorted(known, pids)
+            if np.any(at >= len(known)) or np.any(known[np.minimum(at, len(known) - 1)] != pids):
+                missing = pids[(at >= len(known)) | (known[np.minimum(at, len(known) - 1)] != pids)][0]
+                raise KeyError(f"image {image.name} observes point {missing}, which is not in the model")
+            xyz = xyz_all[at]
             cam = self.cameras[image.camera_id]
             x_cam = xyz @ image.cam_from_world_rotation.T + image.cam_from_world_translation
             proj = project(cam.model, cam.params, x_cam)

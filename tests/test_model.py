@@ -128,6 +128,17 @@ def test_reconstruction_consistency_and_errors():
         assert (int(iid), int(kp)) in recon.points3D[int(pid)].track
 
 
+def test_reprojection_errors_name_a_point_missing_from_the_model():
+    rng = np.random.default_rng(5)
+    recon, _ = make_small_reconstruction(rng)
+    pids, err = recon.reprojection_errors()
+    assert len(pids) == recon.num_observations and np.all(err < 1e-9)
+    image = recon.images[2]
+    image.point3D_ids[np.flatnonzero(image.point3D_ids != INVALID_POINT3D)[0]] = 10_000  # no such point
+    with pytest.raises(KeyError, match="observes point 10000"):
+        recon.reprojection_errors()
+
+
 def test_add_observation_conflict_raises():
     rng = np.random.default_rng(4)
     recon, _ = make_small_reconstruction(rng)
