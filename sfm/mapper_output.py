@@ -27,7 +27,7 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
     tr = state.obs_track[rows]
     order = np.argsort(tr, kind="stable")
     rows, tr = rows[order], tr[order]
-    lengths = np.diff(np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True]))
+    lengths = np.diff(np.flatnonzero(np.r_[True, tr[1:] != tr[:-1], True])) if len(tr) else np.zeros(0, np.int64)
     kept = np.repeat(lengths >= 2, lengths)  # a point needs two inlier rows
     rows, tr, lengths = rows[kept], tr[kept], lengths[lengths >= 2]
     starts = np.r_[0, np.cumsum(lengths)]

@@ -215,10 +215,10 @@ class Reconstruction:
             if len(idx) == 0:
                 continue
             pids = image.point3D_ids[idx]
-            at = np.searchsorted(known, pids)
-            if np.any(at >= len(known)) or np.any(known[np.minimum(at, len(known) - 1)] != pids):
-                missing = pids[(at >= len(known)) | (known[np.minimum(at, len(known) - 1)] != pids)][0]
-                raise KeyError(f"image {image.name} observes point {missing}, which is not in the model")
+            at = np.minimum(np.searchsorted(known, pids), max(len(known) - 1, 0))
+            missing = pids[known[at] != pids] if len(known) else pids
+            if len(missing):
+                raise KeyError(f"image {image.name} observes point {missing[0]}, which is not in the model")
             xyz = xyz_all[at]
             cam = self.cameras[image.camera_id]
             x_cam = xyz @ image.cam_from_world_rotation.T + image.cam_from_world_translation
