@@ -145,14 +145,27 @@ def _transfer_errors(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarra
     return np.nan_to_num(err, nan=np.inf)
 
 
+def _rotation(w: np.ndarray) -> np.ndarray:
+    """The rotation matrix of a rotation vector (Rodrigues)."""
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:
+        return np.eye(3) + _skew(w)
+    k = _skew(w / theta)
+    return np.eye(3) + np.sin(theta) * k + (1.0 - np.cos(theta)) * (k @ k)
+
+
 def refine_relative_pose(
     c2_from_c1_rotation: np.ndarray, c2_from_c1_translation: np.ndarray, x1: np.ndarray,
     x2: np.ndarray, scale: float,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """``cam2_from_cam1`` (R, unit t) minimising the Cauchy-robust Sampson error (in pixels:
-    normalised distances times ``scale``, loss scale 1 px) of normalised correspondences."""
+    normalised distances times ``scale``, loss scale 1 px) of normalised correspondences.
+
+    Five parameters (a rotation vector on ``R`` and a step of ``t`` in its tangent plane),
+    SciPy's trust-region least squares with the forward-difference Jacobian SciPy would take
+    (step sqrt(eps) max(1, |x|)), computed here: SciPy's own differencing and rotation
+    conversion cost more than the residuals on pairs with a few hundred matches."""
     from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
 
     r0 = np.asarray(c2_from_c1_rotation, np.float64)
     t0 = np.ravel(c2_from_c1_translation).astype(np.float64)
@@ -161,13 +174,24 @@ def refine_relative_pose(
 
     def pose(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = t0 + tangent @ x[3:]
-        return Rotation.from_rotvec(x[:3]).as_matrix() @ r0, t / np.linalg.norm(t)
+        return _rotation(x[:3]) @ r0, t / np.linalg.norm(t)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         r, t = pose(x)
         return scale * sampson_distances(_skew(t) @ r, x1, x2)
 
-    result = least_squares(residuals, np.zeros(5), method="trf", loss="cauchy", f_scale=1.0)
+    last: dict = {}
+
+    def cost(x: np.ndarray) -> np.ndarray:
+        last["x"], last["f"] = x.copy(), residuals(x)
+        return last["f"]
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        f0 = last["f"] if "x" in last and np.array_equal(last["x"], x) else residuals(x)
+        steps = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x)) * np.where(x >= 0, 1.0, -1.0)
+        return np.column_stack([(residuals(x + h * e) - f0) / h for h, e in zip(steps, np.eye(5))])
+
+    result = least_squares(cost, np.zeros(5), jac=jacobian, method="trf", loss="cauchy", f_scale=1.0)
     return pose(result.x)
 
 
