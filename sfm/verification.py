@@ -183,8 +183,9 @@ def refine_relative_pose(
     last: dict = {}
 
     def cost(x: np.ndarray) -> np.ndarray:
-        last["x"], last["f"] = x.copy(), residuals(x)
-        return last["f"]
+        f = residuals(x)
+        last["x"], last["f"] = x.copy(), f.copy()  # SciPy scales the returned f in place
+        return f
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         f0 = last["f"] if "x" in last and np.array_equal(last["x"], x) else residuals(x)
