@@ -84,6 +84,15 @@ def rotation_about_axis(axis: np.ndarray, angle_deg: float) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * (k @ k)
 
 
+def rotation_from_rotvec(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis times angle in radians)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:  # first order: the axis is undefined
+        return np.eye(3) + np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    return rotation_about_axis(w, np.degrees(theta))
+
+
 def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``cam_from_world`` (R, t) of a camera at ``center`` looking at ``target`` (OpenCV axes:
     x right, y down, z forward); ``up`` is the world direction that appears upwards."""

@@ -41,7 +41,7 @@ import numpy as np
 
 from sfm.camera_models import CAMERA_MODELS, calibration_matrix, focal_lengths, unproject
 from sfm.database_schema import TwoViewConfig, TwoViewGeometry
-from sfm.geometry import rotation_to_quaternion
+from sfm.geometry import rotation_from_rotvec, rotation_to_quaternion
 
 # Pixel convention change: x_opencv = T @ x_colmap (COLMAP puts the image corner at (0, 0)).
 _T_OPENCV_FROM_COLMAP = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
@@ -145,15 +145,6 @@ def _transfer_errors(H: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarra
     return np.nan_to_num(err, nan=np.inf)
 
 
-def _rotation(w: np.ndarray) -> np.ndarray:
-    """The rotation matrix of a rotation vector (Rodrigues)."""
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3) + _skew(w)
-    k = _skew(w / theta)
-    return np.eye(3) + np.sin(theta) * k + (1.0 - np.cos(theta)) * (k @ k)
-
-
 def refine_relative_pose(
     c2_from_c1_rotation: np.ndarray, c2_from_c1_translation: np.ndarray, x1: np.ndarray,
     x2: np.ndarray, scale: float,
@@ -174,7 +165,7 @@ def refine_relative_pose(
 
     def pose(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = t0 + tangent @ x[3:]
-        return _rotation(x[:3]) @ r0, t / np.linalg.norm(t)
+        return rotation_from_rotvec(x[:3]) @ r0, t / np.linalg.norm(t)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         r, t = pose(x)

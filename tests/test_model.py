@@ -18,6 +18,7 @@ from sfm.geometry import (
     quaternion_to_rotation,
     rotation_about_axis,
     rotation_angle_deg,
+    rotation_from_rotvec,
     rotation_to_quaternion,
     umeyama,
 )
@@ -36,6 +37,15 @@ def test_quaternion_round_trip_all_angles():
         assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
         np.testing.assert_allclose(quaternion_to_rotation(q), r, atol=1e-12)
         assert abs(rotation_angle_deg(r) - angle) < 1e-5
+
+
+def test_rotation_from_rotvec_matches_scipy_and_is_first_order_near_zero():
+    from scipy.spatial.transform import Rotation
+
+    for w in np.random.default_rng(6).normal(size=(20, 3)):
+        assert np.allclose(rotation_from_rotvec(w), Rotation.from_rotvec(w).as_matrix(), atol=1e-14)
+    tiny = np.array([1e-14, -2e-14, 3e-14])
+    assert np.allclose(rotation_from_rotvec(tiny), Rotation.from_rotvec(tiny).as_matrix(), atol=1e-20)
 
 
 def test_look_at_opencv_axes():
