@@ -6,13 +6,7 @@ selects pairs (``sfm.pairs``), matches descriptors (:func:`match_descriptors`), 
 batch of pairs, so a killed run loses at most one batch. Pairs that already have a two-view
 geometry row are skipped: rerunning resumes.
 
-Descriptor matching: nearest neighbour on unit-normalised float32 descriptors, Lowe's ratio test
-on Euclidean distances (``d1 < max_ratio * d2``) and a mutual check (the match must also be the
-nearest neighbour of its partner). ``brute`` is exact: blocked BLAS products (2 - 2 x.y is the
-squared distance of unit vectors), about 0.3 s for 8192 x 8192 on one core. ``flann`` is a
-KD-tree (4 trees, 64 checks), approximate (about 97 % of the exact matches), seeded through
-``cv2.setRNGSeed`` so it is deterministic. ``auto`` takes brute up to 2^27 descriptor pairs
-(about 11.6k x 11.6k features) and flann above, where its n log n wins.
+Descriptor matching is :func:`sfm.descriptor_matching.match_descriptors`.
 
 Parallelism: a process pool (``sfm.process_pool``; scripts need the ``if __name__ == "__main__"``
 guard) of ``num_workers`` (one OpenCV and BLAS thread each) reading features from the database
@@ -37,6 +31,7 @@ from tqdm import tqdm
 
 from sfm.database import Database
 from sfm.database_schema import CameraRecord, TwoViewGeometry
+from sfm.descriptor_matching import match_descriptors, normalize_descriptors
 from sfm.errors import InputError
 from sfm.pairs import select_pairs
 from sfm.process_pool import pool_context
@@ -45,7 +40,6 @@ from sfm.verification import VerifyOptions, pair_seed, to_colmap_pixels, verify_
 
 logger = logging.getLogger(__name__)
 
-BRUTE_MAX_PRODUCT = 2**27
 BATCH_PAIRS = 100
 BATCH_REMOTE = 64  # pairs per task on a distributed executor (one image's row, in exhaustive order)
 CACHE_BYTES = 256 * 2**20
@@ -119,86 +113,6 @@ class MatchResult:
     time_match_s: float
     time_verify_s: float
     time_total_s: float
-
-
-# ------------------------------------------------------------------------------ matching
-def normalize_descriptors(descriptors: np.ndarray) -> np.ndarray:
-    """float32 rows of unit L2 norm (uint8 RootSIFT rows are unit vectors times ~512)."""
-    d = np.asarray(descriptors, np.float32)
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-
-
-def _nearest_brute(d1: np.ndarray, d2: np.ndarray, block: int = 128, d2t: np.ndarray | None = None):
-    """Exact: best and second-best squared distances 1->2, and whether each row's best match
-    is also the nearest of its partner among all rows of 1 (the mutual check; a tie counts).
-
-    The column maxima come from ``max(axis=0)``, a contiguous running reduction; an
-    ``argmax(axis=0)`` per block (the nearest row's index) transposes the block into a copy
-    and took half the time (0.57 -> 0.30 s for 8192 x 8192 on one idle core)."""
-    n1 = len(d1)
-    best = np.zeros(n1, np.int64)
-    sim1 = np.full(n1, -np.inf, np.float32)
-    sim2 = np.full(n1, -np.inf, np.float32)
-    col_max = np.full(len(d2), -np.inf, np.float32)
-    d2t = np.ascontiguousarray(d2.T) if d2t is None else d2t
-    for start in range(0, n1, block):
-        sim = d1[start : start + block] @ d2t
-        rows = np.arange(sim.shape[0])
-        j = np.argmax(sim, axis=1)
-        s = sim[rows, j]
-        best[start : start + block], sim1[start : start + block] = j, s
-        if sim.shape[1] > 1:
-            sim[rows, j] = -np.inf
-            sim2[start : start + block] = sim.max(axis=1)
-            sim[rows, j] = s
-        np.maximum(col_max, sim.max(axis=0), out=col_max)
-    to_dist2 = lambda s: np.maximum(2.0 - 2.0 * s, 0.0)
-    return best, to_dist2(sim1), to_dist2(sim2), sim1 >= col_max[best]
-
-
-def _nearest_flann(d1: np.ndarray, d2: np.ndarray, seed: int):
-    """Approximate (KD-tree, seeded), same outputs as :func:`_nearest_brute` (mutual: the
-    partner's approximate nearest neighbour is the row)."""
-    cv2.setRNGSeed(int(seed))
-    index2 = cv2.flann_Index(d2, {"algorithm": 1, "trees": 4})
-    k = min(2, len(d2))
-    idx, dist2 = index2.knnSearch(d1, k, params={"checks": 64})
-    second = dist2[:, 1] if k == 2 else np.full(len(d1), np.inf, np.float32)
-    cv2.setRNGSeed(int(seed) + 1)
-    index1 = cv2.flann_Index(d1, {"algorithm": 1, "trees": 4})
-    back, _ = index1.knnSearch(d2, 1, params={"checks": 64})
-    best = idx[:, 0].astype(np.int64)
-    return best, dist2[:, 0], second, back[best, 0] == np.arange(len(d1))
-
-
-def match_descriptors(
-    descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio: float = 0.8,
-    cross_check: bool = True, matcher: str = "auto", max_distance: float | None = None,
-    seed: int = 0, normalized: bool = False, transposed2: np.ndarray | None = None,
-) -> np.ndarray:  # fmt: skip
-    """(M, 2) int64 matches (index in 1, index in 2): nearest neighbours passing Lowe's ratio
-    test on Euclidean distances of unit-normalised descriptors, the mutual check when
-    ``cross_check``, and ``distance <= max_distance`` when given. Sorted by index in 1.
-    ``normalized``: both are :func:`normalize_descriptors` output already, and ``transposed2``
-    (optional) is ``descriptors2.T`` C-contiguous: the match stage caches both per image
-    (normalising and transposing per pair took a third of a 1,343 x 1,343 match)."""
-    unit = (lambda d: d) if normalized else normalize_descriptors
-    d1, d2 = unit(descriptors1), unit(descriptors2)
-    if len(d1) == 0 or len(d2) == 0:
-        return np.zeros((0, 2), np.int64)
-    if matcher == "auto":
-        matcher = "brute" if len(d1) * len(d2) <= BRUTE_MAX_PRODUCT else "flann"
-    if matcher == "flann" and min(len(d1), len(d2)) >= 2:
-        best, dist2_1, dist2_2, mutual = _nearest_flann(d1, d2, seed)
-    else:
-        best, dist2_1, dist2_2, mutual = _nearest_brute(d1, d2, d2t=transposed2 if normalized else None)
-    keep = dist2_1 < (max_ratio**2) * dist2_2
-    if cross_check:
-        keep &= mutual
-    if max_distance is not None:
-        keep &= dist2_1 <= max_distance**2
-    rows = np.flatnonzero(keep)
-    return np.stack([rows, best[rows]], axis=1)
 
 
 # ------------------------------------------------------------------------------ one pair

@@ -81,6 +81,26 @@ def test_brute_force_equals_a_direct_computation():
     assert np.array_equal(near, expected[first[keep] <= limit])
 
 
+def test_brute_force_blocks_and_reused_buffer_give_the_same_answer():
+    """Rows go in blocks through one reused buffer: any block size, and a buffer left larger or
+    smaller by the pair before, give the nearest neighbours of one full product."""
+    from sfm.descriptor_matching import _nearest_brute
+
+    rng = np.random.default_rng(3)
+    for n1, n2 in ((700, 650), (90, 40), (1200, 1300), (5, 1)):
+        d1 = normalize_descriptors(quantised(rootsift_like(rng, n1)))
+        d2 = normalize_descriptors(quantised(rootsift_like(rng, n2)))
+        sim = d1.astype(np.float64) @ d2.T.astype(np.float64)
+        best = np.argmax(sim, axis=1)
+        for block in (None, 1, 64, 5000):
+            got_best, dist1, dist2, mutual = _nearest_brute(d1, d2, block=block)
+            assert np.array_equal(got_best, best)
+            np.testing.assert_allclose(dist1, 2 - 2 * sim.max(axis=1), atol=1e-5)
+            if n2 > 1:
+                np.testing.assert_allclose(dist2, 2 - 2 * np.sort(sim, axis=1)[:, -2], atol=1e-5)
+            assert np.array_equal(mutual, np.argmax(sim, axis=0)[best] == np.arange(n1))
+
+
 def test_ratio_test_rejects_ambiguous_matches():
     rng = np.random.default_rng(2)
     d = rootsift_like(rng, 50)
