@@ -95,6 +95,11 @@ class BAOptions:
     optimizer: "lm" (Levenberg-Marquardt, default) or "gauss_newton_or_lm" (Gauss-Newton while
         every step lowers the cost, else LM from the start: a third less time per iteration
         from a good start, ``backend.gtsam_solver.gauss_newton_or_lm``).
+    predictive_stop: also stop once the last two iterations' relative decreases shrink so fast
+        that the rest of the series (geometric: ``d_k r / (1 - r)``, ``r = d_k / d_(k-1)``) is
+        below ``relative_tolerance`` (``backend.gtsam_solver.predicted_rest``): the iteration
+        that would only confirm convergence is skipped.  Meant for BAs that later BAs refine
+        again; a slow, steady creep (``r`` near 1) is never cut short.
     verbose: log every LM iteration at INFO (otherwise DEBUG).
     """
 
@@ -108,6 +113,7 @@ class BAOptions:
     absolute_tolerance: float = 1e-6
     ordering: str = "auto"
     optimizer: str = "lm"
+    predictive_stop: bool = False
     verbose: bool = False
 
 

@@ -70,13 +70,43 @@ def _configure(params, graph, values, options: BAOptions, history: list | None, 
     params.setAbsoluteErrorTol(options.absolute_tolerance)
     level = logging.INFO if options.verbose else logging.DEBUG
 
+    decreases: list[float] = []
+
     def hook(iteration: int, before: float, after: float) -> None:
         logger.log(level, "%s iteration %d: cost %.6g -> %.6g", name, iteration, before, after)
         if history is not None:
             history.append((before, after))
+        decreases.append((before - after) / before if before > 0 else 0.0)
+        if options.predictive_stop and predicted_rest(decreases) < options.relative_tolerance:
+            raise PredictedConvergence  # the optimiser holds this iteration's values
 
     params.iterationHook = hook
     return params
+
+
+class PredictedConvergence(Exception):
+    """Raised by the iteration hook to stop an optimiser whose next decreases are predicted
+    below the relative tolerance (``BAOptions.predictive_stop``)."""
+
+
+def predicted_rest(decreases: list[float]) -> float:
+    """The relative cost decrease still to come, predicted from the last two iterations'
+    relative decreases as a geometric series (``d_k r / (1 - r)``, ``r = d_k / d_(k-1)``);
+    infinite until two iterations have lowered the cost at a shrinking rate."""
+    if len(decreases) < 2 or decreases[-2] <= 0 or decreases[-1] < 0:
+        return float("inf")
+    rate = decreases[-1] / decreases[-2]
+    return decreases[-1] * rate / (1.0 - rate) if rate < 1.0 else float("inf")
+
+
+def _run(optimizer, what: str):
+    """``optimizer.optimize()`` with GTSAM's stdout sent to the log; a predicted convergence
+    returns the values of the iteration that predicted it."""
+    with _quiet_stdout(what):
+        try:
+            return optimizer.optimize()
+        except PredictedConvergence:
+            return optimizer.values()
 
 
 def lm_optimizer(graph, values, options: BAOptions, history: list | None = None) -> gtsam.LevenbergMarquardtOptimizer:
@@ -99,8 +129,7 @@ def gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history:
     params = _configure(gtsam.GaussNewtonParams(), graph, values, options, trial, "Gauss-Newton")
     optimizer = gtsam.GaussNewtonOptimizer(graph, values, params)
     try:
-        with _quiet_stdout(what):
-            result = optimizer.optimize()
+        result = _run(optimizer, what)
         if all(after <= before for before, after in trial):
             history.extend(trial)
             return result, True, optimizer.iterations(), optimizer.iterations() < options.max_iterations
@@ -135,8 +164,7 @@ def _quiet_stdout(what: str):
 def optimize_or_keep(optimizer, values: gtsam.Values, what: str) -> tuple[gtsam.Values, bool]:
     """Run the optimiser; on a GTSAM error (e.g. an indeterminant system) keep the input."""
     try:
-        with _quiet_stdout(what):
-            return optimizer.optimize(), True
+        return _run(optimizer, what), True
     except RuntimeError as exc:
         logger.warning("%s failed: %s", what, exc)
         return values, False

@@ -38,6 +38,15 @@ _TRIANGULATION_ROWS = 250_000
 # gradient tolerance instead (Ceres, 1 in cost units, 50 iterations).
 GROWING_TOLERANCE = 1e-3
 FINAL_TOLERANCE = 1e-4
+# The growing BAs also stop as soon as the rest of their decreases is predicted below
+# GROWING_TOLERANCE (``BAOptions.predictive_stop``): a local BA from PnP and fresh points
+# typically lowers its cost by 30-90%, then by 1e-3-1e-2, and a third iteration only confirmed
+# that.  Measured: temple_ring's 37 local BAs go from 2-7 to 2 iterations each (mapping about 1 s
+# faster over eight alternating runs; median rotation error 0.5463 instead of 0.5467 deg, AUC@5
+# 0.8155 instead of 0.8154), the synthetic aerial 250's local BAs from 670 to 448 iterations
+# (BA time 47 instead of 60 s, the same 0.0119 deg); lund_door's model is unchanged
+# (AUC@1 0.9747).  The final BAs keep the plain rule: on nearly flat costs their late
+# iterations still move the poses.
 
 # Registered images from which a camera with degenerate intrinsics takes its images out of the
 # model (COLMAP's IncrementalMapper::FilterImages waits for 20).
@@ -63,7 +72,8 @@ class BundleAdjustmentSteps:
         return rows[keep], owner[keep]
 
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
-                       tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm") -> None:
+                       tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
+                       predictive: bool = False) -> None:
         rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
@@ -86,7 +96,7 @@ class BundleAdjustmentSteps:
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
             BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
                       refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance,
-                      optimizer=optimizer),
+                      optimizer=optimizer, predictive_stop=predictive),
             seed=self.opts.seed, obs_sigma=self.obs_sigma[rows],
         )
         self.R[order[:n_free]] = result.rotations[:n_free]
@@ -113,7 +123,8 @@ class BundleAdjustmentSteps:
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
         # Gauss-Newton first: the new image's PnP pose and fresh points are a good start
-        self._bundle_adjust(free, tracks, "none", 25, tolerance=GROWING_TOLERANCE, optimizer="gauss_newton_or_lm")
+        self._bundle_adjust(free, tracks, "none", 25, tolerance=GROWING_TOLERANCE, optimizer="gauss_newton_or_lm",
+                            predictive=True)
         self.filter_observations(tracks)
 
     def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
@@ -128,7 +139,7 @@ class BundleAdjustmentSteps:
                 self._refine_points(tracks)
         else:
             subset = self._ba_subset(tracks)
-            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, GROWING_TOLERANCE)
+            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, GROWING_TOLERANCE, predictive=True)
             if len(subset) < len(tracks):
                 self._refine_points(np.setdiff1d(tracks, subset))
         self.drop_degenerate_cameras()
