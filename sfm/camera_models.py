@@ -127,7 +127,8 @@ def project(model: str, params: np.ndarray, points_cam: np.ndarray) -> np.ndarra
 
 def unproject(model: str, params: np.ndarray, pixels: np.ndarray, iterations: int = 20) -> np.ndarray:
     """Normalised image coordinates (N, 2) of pixels (N, 2): removes the distortion by fixed-point
-    iteration (converges for the mild distortion SfM cameras have)."""
+    iteration (converges for the mild distortion SfM cameras have; stops early once an
+    iteration changes nothing, which more iterations would not either)."""
     spec = model_spec(model)
     params = np.asarray(params, dtype=np.float64)
     px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
@@ -139,7 +140,10 @@ def unproject(model: str, params: np.ndarray, pixels: np.ndarray, iterations: in
     if spec.extra_idx:
         for _ in range(iterations):
             du, dv = _distortion(spec, params, u, v)
-            u, v = ud - du, vd - dv
+            u_next, v_next = ud - du, vd - dv
+            if np.array_equal(u_next, u) and np.array_equal(v_next, v):
+                break
+            u, v = u_next, v_next
     return np.stack([u, v], axis=1)
 
 
