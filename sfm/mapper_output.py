@@ -34,8 +34,9 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
     point_of_row = np.repeat(np.arange(1, len(lengths) + 1), lengths)
     image_of_row = np.asarray(state.payload.image_ids)[state.obs_image[rows]]
     kp_of_row = state.obs_kp[rows]
-    for iid in np.unique(image_of_row).tolist():
-        sel = image_of_row == iid
+    by_image = np.argsort(image_of_row, kind="stable")  # one pass per image, not a mask over all rows
+    image_ids, first = np.unique(image_of_row[by_image], return_index=True)
+    for iid, sel in zip(image_ids.tolist(), np.split(by_image, first[1:])):
         recon.images[iid].point3D_ids[kp_of_row[sel]] = point_of_row[sel]
     xyz = state.track_xyz[tr[starts[:-1]]]
     grey = np.full(3, 128, np.uint8)
@@ -45,8 +46,7 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
         if state.payload.colors is not None:
             color = np.asarray(state.payload.colors[state.obs_image[rows[s]]][kps[s]], dtype=np.uint8)
         recon.points3D[k + 1] = Point3D(xyz[k], list(zip(images[s:e], kps[s:e])), color)
-    next_id = len(lengths) + 1
-    recon._next_point_id = next_id
+    recon._next_point_id = len(lengths) + 1
     recon.update_point_errors()
     return recon
 
