@@ -87,14 +87,14 @@ def main(argv: list[str] | None = None) -> int:
     options = {k: v for k, v in (("intrinsics", args.intrinsics), ("max_cluster_size", args.max_cluster_size))
                if v is not None}
     rows, ratios = [], []
-    for k in range(args.repeat):
-        where = out if args.repeat == 1 else out / f"run{k + 1}"
+    for i in range(args.repeat):
+        where = out if args.repeat == 1 else out / f"run{i + 1}"
         ours = lambda: run_graphsfm(args.images, where / "graphsfm", options, not args.no_recording)  # noqa: E731
         peer = lambda: run_peer(args.images, where / "colmap", args.intrinsics, threads)  # noqa: E731
-        runs = [ours(), peer()] if k % 2 == 0 else list(reversed([peer(), ours()]))
+        runs = [ours(), peer()] if i % 2 == 0 else list(reversed([peer(), ours()]))
         for run in runs:
             r = row(run["label"], run["model"], run["total"], gt)
-            run_column = {"run": k + 1} if args.repeat > 1 else {}
+            run_column = {"run": i + 1} if args.repeat > 1 else {}
             rows.append({**run_column, "method": r.pop("method"), **{k: round(v, 1) for k, v in run["stages"].items()}, **r})
         ratios.append(runs[0]["total"] / runs[1]["total"])
     keys = list(dict.fromkeys(k for r in rows for k in r))
