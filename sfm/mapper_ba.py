@@ -73,7 +73,9 @@ class BundleAdjustmentSteps:
 
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
                        tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
-                       predictive: bool = False) -> None:
+                       predictive: bool = False, loss: str | None = None) -> None:
+        """BA of ``tracks`` with the images ``free`` free and the others that see them held;
+        ``loss``: the robust loss (None: ``opts.loss``, the local BAs' one)."""
         rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
@@ -94,7 +96,7 @@ class BundleAdjustmentSteps:
             [self.priors[c].model for c in cams], [self.params[c] for c in cams], cam_local[self.cam_index[order]],
             self.R[order], self.t[order], self.track_xyz[tracks],
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
-            BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
+            BAOptions(loss=loss or self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
                       refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance,
                       optimizer=optimizer, predictive_stop=predictive),
             seed=self.opts.seed, obs_sigma=self.obs_sigma[rows],
@@ -134,12 +136,14 @@ class BundleAdjustmentSteps:
         tracks = np.flatnonzero(self.track_valid)
         if final:
             parts = self._ba_parts(tracks)
-            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, tolerance, parts=parts)
+            self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, tolerance, parts=parts,
+                                loss=self.opts.global_loss)
             if parts > 1:
                 self._refine_points(tracks)
         else:
             subset = self._ba_subset(tracks)
-            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, GROWING_TOLERANCE, predictive=True)
+            self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, GROWING_TOLERANCE, predictive=True,
+                                loss=self.opts.global_loss)
             if len(subset) < len(tracks):
                 self._refine_points(np.setdiff1d(tracks, subset))
         self.drop_degenerate_cameras()

@@ -205,3 +205,34 @@ def test_every_bundle_adjustment_weighs_by_keypoint_scale(tmp_path, monkeypatch)
     seen.clear()
     incremental.reconstruct_incremental(payload, MapperOptions(scale_weights=False))
     assert seen and all(np.all(sigma == 1.0) for _, sigma in seen)
+
+
+def test_global_bundle_adjustments_are_least_squares_and_local_ones_robust(tmp_path, monkeypatch):
+    """COLMAP's split: the local BAs (Gauss-Newton first) use the robust ``loss``, the global
+    BAs (growing and final, Levenberg-Marquardt) ``global_loss``, least squares by default."""
+    import sfm.mapper_ba as mapper_ba
+
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=14, observations_per_image=500, seed=3))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=False, min_inliers=15)
+    seen = []
+    original = mapper_ba.bundle_adjust_partitioned
+
+    def spy(*args, **kwargs):
+        options = args[10]
+        seen.append((options.optimizer, options.loss, options.refine_intrinsics))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
+    for opts, local, glob in ((MapperOptions(), "huber", "none"),
+                              (MapperOptions(loss="cauchy", global_loss="huber"), "cauchy", "huber")):
+        seen.clear()
+        [model] = incremental.reconstruct_incremental(payload, opts)
+        assert len(model.images) == 14
+        kinds = {optimizer for optimizer, _, _ in seen}
+        assert kinds == {"lm", "gauss_newton_or_lm"}, kinds  # both kinds of BA ran
+        for optimizer, loss, refine in seen:
+            if optimizer == "gauss_newton_or_lm":  # a local BA: poses and points only
+                assert (loss, refine) == (local, "none")
+            else:
+                assert loss == glob
+        assert seen[-1][0] == "lm" and seen[-1][1] == glob  # the final BA
