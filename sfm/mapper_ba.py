@@ -73,9 +73,9 @@ class BundleAdjustmentSteps:
 
     def _bundle_adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
                        tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
-                       predictive: bool = False, loss: str | None = None) -> None:
+                       predictive: bool = False, loss_scale: float | None = None) -> None:
         """BA of ``tracks`` with the images ``free`` free and the others that see them held;
-        ``loss``: the robust loss (None: ``opts.loss``, the local BAs' one)."""
+        ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
         rows, _ = self._inlier_rows(tracks)
         if len(rows) == 0:
             return
@@ -96,7 +96,7 @@ class BundleAdjustmentSteps:
             [self.priors[c].model for c in cams], [self.params[c] for c in cams], cam_local[self.cam_index[order]],
             self.R[order], self.t[order], self.track_xyz[tracks],
             img_local[self.obs_image[rows]], point_local[self.obs_track[rows]], self.obs_px[rows], parts,
-            BAOptions(loss=loss or self.opts.loss, loss_scale=self.opts.loss_scale, fixed_poses=tuple(range(n_free, len(order))),
+            BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale if loss_scale is None else loss_scale, fixed_poses=tuple(range(n_free, len(order))),
                       refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance,
                       optimizer=optimizer, predictive_stop=predictive),
             seed=self.opts.seed, obs_sigma=self.obs_sigma[rows],
@@ -137,17 +137,22 @@ class BundleAdjustmentSteps:
         if final:
             parts = self._ba_parts(tracks)
             self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, tolerance, parts=parts,
-                                loss=self.opts.global_loss)
+                                loss_scale=self._global_loss_scale())
             if parts > 1:
                 self._refine_points(tracks)
         else:
             subset = self._ba_subset(tracks)
             self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, GROWING_TOLERANCE, predictive=True,
-                                loss=self.opts.global_loss)
+                                loss_scale=self._global_loss_scale())
             if len(subset) < len(tracks):
                 self._refine_points(np.setdiff1d(tracks, subset))
         self.drop_degenerate_cameras()
         self.filter_observations(tracks)
+
+    def _global_loss_scale(self) -> float:
+        """``opts.global_loss_scale``, by default ``max_reproj_error`` (see ``MapperOptions``)."""
+        scale = self.opts.global_loss_scale
+        return self.opts.max_reproj_error if scale is None else scale
 
     def drop_degenerate_cameras(self) -> None:
         """COLMAP's image filter after a global BA: the images of a camera whose refined

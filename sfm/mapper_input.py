@@ -67,19 +67,20 @@ class MapperOptions:
         whose intrinsics were not given by the user.
     refine_given_intrinsics: also refine intrinsics given with --intrinsics (held fixed
         otherwise).
-    loss: one of huber|cauchy|none, the robust loss of the local BAs (and of the point
-        re-estimation after a BA on a track subset), scale ``loss_scale`` pixels (COLMAP's
-        local BA: soft-L1 at 1 px).
-    loss_scale: scale of the robust loss in pixels (times the observation's sigma).
-    global_loss: one of none|huber|cauchy, the loss of the global BAs (growing and final, and
-        the refinement of merged poses).  none: least squares, COLMAP's global BA (its
-        TRIVIAL loss): every observation a global BA sees reprojected within
-        ``max_reproj_error`` when it joined the model and after the BA before it, and least
-        squares converges quadratically where a robust loss, re-weighting each iteration,
-        converges linearly in the tail.  temple_ring (default intrinsics): the final BAs take
-        2 + 2 iterations instead of 3 + 3, the young model's 110 instead of 151, a fifth less
-        BA work in all; median rotation error 0.546 -> 0.528 deg, AUC@5 0.816 -> 0.817;
-        lund_door AUC@1 0.975 both.
+    loss: one of huber|cauchy|none, the robust loss of every BA (and of the point
+        re-estimation after a BA on a track subset).
+    loss_scale: scale of the local BAs' robust loss in pixels (times the observation's sigma;
+        COLMAP's local BA: soft-L1 at 1 px).
+    global_loss_scale: scale in pixels (times the observation's sigma) of the global BAs'
+        robust loss (growing and final BAs, and the refinement of merged poses); None:
+        ``max_reproj_error``.  Every observation a global BA sees reprojected within
+        ``max_reproj_error`` when it joined the model and after the BA before it, so at that
+        scale the loss is least squares on all of them (COLMAP's global BA is least squares)
+        and only bounds an observation the BA pushes beyond it; at 1 px it re-weights the
+        inliers at every iteration and converges linearly in the tail.  temple_ring (default
+        intrinsics): the final BAs take 2 + 2 iterations instead of 3 + 3, the young model's
+        110 instead of 151, a fifth less BA work in all; median rotation error 0.546 -> 0.528
+        deg, AUC@5 0.816 -> 0.817; lund_door AUC@1 0.975 both.
     scale_weights: every BA weighs each observation by its keypoint's detection scale:
         standard deviation ``max(1, scale / 0.8)`` px (``sfm.sift.localization_sigma``: SIFT's
         positional error grows with its scale, the finest level counts as 1 px); keypoints
@@ -114,7 +115,7 @@ class MapperOptions:
     refine_given_intrinsics: bool = False
     loss: str = "huber"
     loss_scale: float = 1.0
-    global_loss: str = "none"
+    global_loss_scale: float | None = None
     scale_weights: bool = True
     ba_max_observations: int = 1_000_000
     min_model_size: int = 3

@@ -207,9 +207,10 @@ def test_every_bundle_adjustment_weighs_by_keypoint_scale(tmp_path, monkeypatch)
     assert seen and all(np.all(sigma == 1.0) for _, sigma in seen)
 
 
-def test_global_bundle_adjustments_are_least_squares_and_local_ones_robust(tmp_path, monkeypatch):
-    """COLMAP's split: the local BAs (Gauss-Newton first) use the robust ``loss``, the global
-    BAs (growing and final, Levenberg-Marquardt) ``global_loss``, least squares by default."""
+def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_path, monkeypatch):
+    """The local BAs (Gauss-Newton first) use ``loss_scale``, the global BAs (growing and
+    final, Levenberg-Marquardt) ``global_loss_scale``, by default ``max_reproj_error``: least
+    squares on every observation the model keeps, as COLMAP's global BA."""
     import sfm.mapper_ba as mapper_ba
 
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=14, observations_per_image=500, seed=3))
@@ -219,20 +220,21 @@ def test_global_bundle_adjustments_are_least_squares_and_local_ones_robust(tmp_p
 
     def spy(*args, **kwargs):
         options = args[10]
-        seen.append((options.optimizer, options.loss, options.refine_intrinsics))
+        seen.append((options.optimizer, options.loss, options.loss_scale, options.refine_intrinsics))
         return original(*args, **kwargs)
 
     monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
-    for opts, local, glob in ((MapperOptions(), "huber", "none"),
-                              (MapperOptions(loss="cauchy", global_loss="huber"), "cauchy", "huber")):
+    for opts, local, glob in ((MapperOptions(), 1.0, 4.0),
+                              (MapperOptions(max_reproj_error=3.0), 1.0, 3.0),
+                              (MapperOptions(loss="cauchy", loss_scale=0.5, global_loss_scale=2.0), 0.5, 2.0)):
         seen.clear()
         [model] = incremental.reconstruct_incremental(payload, opts)
         assert len(model.images) == 14
-        kinds = {optimizer for optimizer, _, _ in seen}
-        assert kinds == {"lm", "gauss_newton_or_lm"}, kinds  # both kinds of BA ran
-        for optimizer, loss, refine in seen:
+        assert {optimizer for optimizer, *_ in seen} == {"lm", "gauss_newton_or_lm"}  # both kinds ran
+        for optimizer, loss, scale, refine in seen:
+            assert loss == opts.loss
             if optimizer == "gauss_newton_or_lm":  # a local BA: poses and points only
-                assert (loss, refine) == (local, "none")
+                assert (scale, refine) == (local, "none")
             else:
-                assert loss == glob
-        assert seen[-1][0] == "lm" and seen[-1][1] == glob  # the final BA
+                assert scale == glob
+        assert seen[-1][0] == "lm" and seen[-1][2] == glob  # the final BA
