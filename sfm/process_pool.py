@@ -1,12 +1,20 @@
 """The start method of this package's local process pools (extract, match, map).
 
-``forkserver`` where the platform has it: one server process imports the stage modules once
+``forkserver`` where the platform has it: one server process imports the pipeline once
 (``PRELOAD``), and every pool's workers are forked from it, so a pool starts in about 15 ms
 instead of the 0.3-0.5 s a ``spawn`` pool spends starting interpreters and importing OpenCV,
 NumPy and GTSAM in each worker, for every stage.  The server holds no threads of ours when it
 forks (it is a fresh interpreter, not the caller), which is what makes forking safe with
 OpenCV's and BLAS's thread pools.  ``spawn`` elsewhere (Windows).  Either way, scripts need the
 ``if __name__ == "__main__":`` guard.
+
+Each worker also runs the caller's main module again (as ``__mp_main__``, so that functions
+defined there unpickle).  The server's own ``"__main__"`` preload never happens on CPython
+3.11 (``forkserver.ensure_running`` forwards a ``main_path`` key that
+``spawn.get_preparation_data`` calls ``init_main_from_path``), so what that module imports
+must already be in the server: ``PRELOAD`` holds ``sfm.api``, which imports every stage.  With
+only the worker modules there, each pool of ``graphsfm reconstruct`` or of a script importing
+``sfm.api`` waited 0.5-0.7 s for its workers to import the rest again.
 """
 
 from __future__ import annotations
@@ -15,7 +23,7 @@ import multiprocessing
 from multiprocessing.context import BaseContext
 
 # "__main__" is multiprocessing's own default preload: the caller's functions can be pickled.
-PRELOAD = ["__main__", "sfm.features", "sfm.matching"]
+PRELOAD = ["__main__", "sfm.api"]
 
 
 def pool_context() -> BaseContext:
