@@ -15,6 +15,7 @@ A disabled recorder (``Recorder.disabled()``) accepts every call and does nothin
 from __future__ import annotations
 
 import logging
+import threading
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,20 +41,42 @@ class Recorder:
     def __init__(self, path: Path | None, workspace: Path | None = None, spawn: bool = False) -> None:
         self.path = Path(path) if path is not None else None
         self._rec = None
+        self._error: BaseException | None = None
+        self._opening: threading.Thread | None = None
         if self.path is None:
             return
-        import rerun as rr
+        # Opening the stream imports the Rerun SDK (about 0.3 s): a thread does it while the
+        # caller goes on (extraction and matching log nothing); the first use waits for it.
+        self._opening = threading.Thread(target=self._open, args=(workspace, spawn), daemon=True)
+        self._opening.start()
 
-        key = str(Path(workspace or self.path.parent).resolve())
-        recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, "graphsfm:" + key))
-        self._rec = rr.RecordingStream("graphsfm", recording_id=recording_id)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._rec.save(str(self.path))
+    def _open(self, workspace: Path | None, spawn: bool) -> None:
+        try:
+            import rerun as rr
+
+            key = str(Path(workspace or self.path.parent).resolve())
+            recording_id = str(uuid.uuid5(uuid.NAMESPACE_URL, "graphsfm:" + key))
+            rec = rr.RecordingStream("graphsfm", recording_id=recording_id)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            rec.save(str(self.path))
+            self._rec = rec
+        except BaseException as exc:  # noqa: BLE001 - raised again by the first use
+            self._error = exc
+            return
         if spawn:
             try:
                 self._rec.spawn(connect=False)  # also stream to a viewer if one is installed
             except Exception as exc:  # noqa: BLE001 - a missing viewer must not stop a run
                 log.warning("could not start the Rerun viewer (%s); recording to %s only", exc, self.path)
+
+    def _stream(self):
+        """The recording stream once it is open (None when disabled or closed)."""
+        if self._opening is not None:
+            self._opening.join()
+            self._opening = None
+            if self._error is not None:
+                raise self._error
+        return self._rec
 
     @classmethod
     def disabled(cls) -> Recorder:
@@ -61,25 +84,25 @@ class Recorder:
 
     @property
     def enabled(self) -> bool:
-        return self._rec is not None
+        return self._stream() is not None
 
     def stage(self, name: str) -> None:
         """Move the ``stage`` timeline to the stage's fixed position."""
-        if self._rec is not None:
-            self._rec.set_time("stage", sequence=STAGES[name])
+        if (rec := self._stream()) is not None:
+            rec.set_time("stage", sequence=STAGES[name])
 
     def set_time(self, timeline: str, sequence: int) -> None:
-        if self._rec is not None:
-            self._rec.set_time(timeline, sequence=int(sequence))
+        if (rec := self._stream()) is not None:
+            rec.set_time(timeline, sequence=int(sequence))
 
     def log(self, entity: str, *archetypes, static: bool = False) -> None:
-        if self._rec is not None:
-            self._rec.log(entity, *archetypes, static=static)
+        if (rec := self._stream()) is not None:
+            rec.log(entity, *archetypes, static=static)
 
     def close(self) -> None:
-        if self._rec is not None:
-            self._rec.flush()
-            self._rec.disconnect()
+        if (rec := self._stream()) is not None:
+            rec.flush()
+            rec.disconnect()
             self._rec = None
 
     def __enter__(self) -> Recorder:
@@ -93,7 +116,7 @@ class Recorder:
                         weights: np.ndarray, cluster_of: Sequence[int] | None = None) -> None:
         """``graph/images``: one node per image (coloured by cluster when given), one edge per
         verified pair (its weight, the number of inliers, is in the node-less edge list order)."""
-        if self._rec is None:
+        if not self.enabled:
             return
         import rerun as rr
 
@@ -106,7 +129,7 @@ class Recorder:
                           anchor: int | None = None, entity: str = "graph/clusters") -> None:
         """``graph/clusters``: one node per cluster labelled with its size, the tree's edges
         (MaxST after clustering, MinST after merging); the anchor, if any, is drawn larger."""
-        if self._rec is None:
+        if not self.enabled:
             return
         import rerun as rr
 
