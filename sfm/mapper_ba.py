@@ -129,21 +129,25 @@ class BundleAdjustmentSteps:
                             predictive=True)
         self.filter_observations(tracks)
 
-    def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
+    def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE,
+                  loss_scale: float | None = None) -> None:
         """BA of every registered image: on a track subset while the model grows, on every
-        track when ``final`` (LM stopping at ``tolerance``, see ``FINAL_TOLERANCE``)."""
+        track when ``final`` (LM stopping at ``tolerance``, see ``FINAL_TOLERANCE``), with the
+        robust loss at ``loss_scale`` pixels (None: ``opts.global_loss_scale``, whose default is
+        ``max_reproj_error``)."""
+        loss_scale = self._global_loss_scale() if loss_scale is None else loss_scale
         free = np.flatnonzero(self.registered)
         tracks = np.flatnonzero(self.track_valid)
         if final:
             parts = self._ba_parts(tracks)
             self._bundle_adjust(free, tracks, self.opts.refine_intrinsics, 100, tolerance, parts=parts,
-                                loss_scale=self._global_loss_scale())
+                                loss_scale=loss_scale)
             if parts > 1:
                 self._refine_points(tracks)
         else:
             subset = self._ba_subset(tracks)
             self._bundle_adjust(free, subset, self.opts.refine_intrinsics, 25, GROWING_TOLERANCE, predictive=True,
-                                loss_scale=self._global_loss_scale())
+                                loss_scale=loss_scale)
             if len(subset) < len(tracks):
                 self._refine_points(np.setdiff1d(tracks, subset))
         self.drop_degenerate_cameras()

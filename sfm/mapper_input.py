@@ -71,8 +71,9 @@ class MapperOptions:
         re-estimation after a BA on a track subset).
     loss_scale: scale of the local BAs' robust loss in pixels (times the observation's sigma;
         COLMAP's local BA: soft-L1 at 1 px).
-    global_loss_scale: scale in pixels (times the observation's sigma) of the global BAs'
-        robust loss (growing and final BAs, and the refinement of merged poses); None:
+    global_loss_scale: scale in pixels (times the observation's sigma) of the robust loss of
+        a model's global BAs (growing and final; the refinement of merged poses keeps
+        ``loss_scale``, see ``sfm.incremental.refine_with_poses``); None:
         ``max_reproj_error``.  Every observation a global BA sees reprojected within
         ``max_reproj_error`` when it joined the model and after the BA before it, so at that
         scale the loss is least squares on all of them (COLMAP's global BA is least squares)

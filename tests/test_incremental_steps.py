@@ -238,3 +238,9 @@ def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_p
             else:
                 assert scale == glob
         assert seen[-1][0] == "lm" and seen[-1][2] == glob  # the final BA
+        seen.clear()  # the refinement of merged poses keeps the local scale
+        poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation)
+                 for im in model.images.values()}
+        refined = incremental.refine_with_poses(payload, opts, poses, {})
+        assert len(refined.images) == 14 and seen
+        assert all(optimizer == "lm" and scale == local for optimizer, _, scale, _ in seen), seen
