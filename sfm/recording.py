@@ -36,7 +36,10 @@ def cluster_color(k: int) -> tuple[int, int, int]:
 
 
 class Recorder:
-    """One Rerun recording saved to ``path`` (``None``: disabled, every call is a no-op)."""
+    """One Rerun recording saved to ``path`` (``None``: disabled, every call is a no-op).
+
+    The stream opens in a background thread; the first call that needs it waits for it and
+    raises what opening it raised (e.g. the ``rerun`` import failing)."""
 
     def __init__(self, path: Path | None, workspace: Path | None = None, spawn: bool = False) -> None:
         self.path = Path(path) if path is not None else None
