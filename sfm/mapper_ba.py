@@ -133,8 +133,8 @@ class BundleAdjustmentSteps:
                   loss_scale: float | None = None) -> None:
         """BA of every registered image: on a track subset while the model grows, on every
         track when ``final`` (LM stopping at ``tolerance``, see ``FINAL_TOLERANCE``), with the
-        robust loss at ``loss_scale`` pixels (None: ``opts.global_loss_scale``, whose default is
-        ``max_reproj_error``)."""
+        robust loss at ``loss_scale`` pixels (None: ``opts.global_loss_scale``, see
+        ``MapperOptions``)."""
         loss_scale = self._global_loss_scale() if loss_scale is None else loss_scale
         free = np.flatnonzero(self.registered)
         tracks = np.flatnonzero(self.track_valid)
@@ -154,7 +154,8 @@ class BundleAdjustmentSteps:
         self.filter_observations(tracks)
 
     def _global_loss_scale(self) -> float:
-        """``opts.global_loss_scale``, by default ``max_reproj_error`` (see ``MapperOptions``)."""
+        """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final
+        model's ``max_reproj_error``."""
         scale = self.opts.global_loss_scale
         return self.opts.max_reproj_error if scale is None else scale
 

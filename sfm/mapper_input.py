@@ -7,7 +7,7 @@ it can be pickled to a worker process or another machine (DESIGN.md, "Execution"
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -73,15 +73,19 @@ class MapperOptions:
         COLMAP's local BA: soft-L1 at 1 px).
     global_loss_scale: scale in pixels (times the observation's sigma) of the robust loss of
         a model's global BAs (growing and final; the refinement of merged poses keeps
-        ``loss_scale``, see ``sfm.incremental.refine_with_poses``); None:
-        ``max_reproj_error``.  Every observation a global BA sees reprojected within
+        ``loss_scale``, see ``sfm.incremental.refine_with_poses``).  None: ``max_reproj_error``
+        for a model that is final (all images in one cluster), ``loss_scale`` for the models of
+        clusters that are merged.  Every observation a global BA sees reprojected within
         ``max_reproj_error`` when it joined the model and after the BA before it, so at that
-        scale the loss is least squares on all of them (COLMAP's global BA is least squares)
-        and only bounds an observation the BA pushes beyond it; at 1 px it re-weights the
-        inliers at every iteration and converges linearly in the tail.  temple_ring (default
-        intrinsics): the final BAs take 2 + 2 iterations instead of 3 + 3, the young model's
-        110 instead of 151, a fifth less BA work in all; median rotation error 0.546 -> 0.528
-        deg, AUC@5 0.816 -> 0.817; lund_door AUC@1 0.975 both.
+        scale the loss is least squares on all of them (COLMAP's global BA) and only bounds an
+        observation the BA pushes beyond it, where at 1 px it re-weights the inliers at every
+        iteration and converges linearly in the tail.  temple_ring (default intrinsics): final
+        BAs 2 + 2 iterations instead of 3 + 3, the young model's 110 instead of 151, a fifth
+        less BA work; median rotation error 0.546 -> 0.528 deg, AUC@5 0.816 -> 0.817;
+        lund_door AUC@1 0.975 both.  The merged synthetic aerial blocks did not gain: with the
+        threshold in the clusters' BAs they came out at 0.0282, 0.0526 and 0.0302 deg (500,
+        1,000, 2,000 images; 0.0212, 0.0879, 0.0191 with 1 px in the merged refinement only)
+        against 0.0211, 0.0528 and 0.0231 deg with 1 px throughout.
     scale_weights: every BA weighs each observation by its keypoint's detection scale:
         standard deviation ``max(1, scale / 0.8)`` px (``sfm.sift.localization_sigma``: SIFT's
         positional error grows with its scale, the finest level counts as 1 px); keypoints
@@ -122,6 +126,13 @@ class MapperOptions:
     min_model_size: int = 3
     max_num_models: int = 50
     seed: int = 0
+
+    def for_model(self, final: bool) -> MapperOptions:
+        """These options with ``global_loss_scale`` resolved for a model that is final
+        (``max_reproj_error``) or one that will be merged (``loss_scale``)."""
+        if self.global_loss_scale is not None:
+            return self
+        return replace(self, global_loss_scale=self.max_reproj_error if final else self.loss_scale)
 
     def smallest_model(self, num_images: int) -> int:
         """The fewest registered images a model of ``num_images`` input images keeps: COLMAP's

@@ -162,7 +162,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
-    for res in executor.run(payloads.subset(todo), options, recorder) if todo else ():
+    for res in executor.run(payloads.subset(todo), options.for_model(direct), recorder) if todo else ():
         k = todo[res.index]
         label = payloads.labels[k]
         written = write_models(res.models, _folder(workspace, direct, label))

@@ -244,3 +244,12 @@ def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_p
         refined = incremental.refine_with_poses(payload, opts, poses, {})
         assert len(refined.images) == 14 and seen
         assert all(optimizer == "lm" and scale == local for optimizer, _, scale, _ in seen), seen
+
+
+def test_global_loss_scale_is_the_inlier_threshold_for_final_models_and_1px_for_merged_ones():
+    opts = MapperOptions(max_reproj_error=3.0, loss_scale=0.7)
+    assert opts.global_loss_scale is None
+    assert opts.for_model(final=True).global_loss_scale == 3.0
+    assert opts.for_model(final=False).global_loss_scale == 0.7
+    given = MapperOptions(global_loss_scale=2.0)
+    assert given.for_model(final=True) is given and given.for_model(final=False) is given
