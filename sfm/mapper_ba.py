@@ -156,8 +156,7 @@ class BundleAdjustmentSteps:
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final
         model's ``max_reproj_error``."""
-        scale = self.opts.global_loss_scale
-        return self.opts.max_reproj_error if scale is None else scale
+        return self.opts.for_model(final=True).global_loss_scale
 
     def drop_degenerate_cameras(self) -> None:
         """COLMAP's image filter after a global BA: the images of a camera whose refined
