@@ -5,7 +5,7 @@ of its thousands: past that, more observations cost time and memory in every LM 
 GTSAM about 1.3 KB each with METIS ordering) for a gain in accuracy that shrinks like one over
 the square root of their number.  So the global BAs while a model grows optimise the cameras
 on a subset of the tracks, and every other point is re-estimated afterwards with the cameras
-held (:func:`sfm.triangulation.refine_points`), which is exact for it: with its cameras fixed,
+held (:func:`sfm.mapper.triangulation.refine_points`), which is exact for it: with its cameras fixed,
 a point is its own small problem.  (A final BA over too many observations is split instead,
 ``backend.partitioned_ba``: on a nearly flat problem one subset's optimum lies too far from
 the full one.)

@@ -2,7 +2,7 @@
 
 ``sfm.reconstruct(images, workspace, **options)`` runs every stage; ``sfm.run_extract``,
 ``run_match``, ``run_cluster``, ``run_map`` and ``run_merge`` run one each (see ``sfm.api``).
-Imported lazily so that ``import sfm.model`` stays light.
+Imported lazily so that ``import sfm.core.model`` stays light.
 """
 
 from __future__ import annotations

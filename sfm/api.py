@@ -10,16 +10,16 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from sfm.clustering import ClusterOptions, run_cluster
-from sfm.colmap_io import read_model
-from sfm.features import ExtractOptions, run_extract
-from sfm.mapper_input import MapperOptions
-from sfm.mapping import run_map
-from sfm.matching import MatchOptions, run_match
-from sfm.merge import MergeOptions
-from sfm.model import Reconstruction
-from sfm.pipeline import ReconstructOptions, run_merge, run_reconstruct
-from sfm.recording import Recorder
+from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.io.colmap_model import read_model
+from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.mapper.payload import MapperOptions
+from sfm.stages.map import run_map
+from sfm.stages.match import MatchOptions, run_match
+from sfm.merge.cluster_graph import MergeOptions
+from sfm.core.model import Reconstruction
+from sfm.stages.merge import ReconstructOptions, run_merge, run_reconstruct
+from sfm.viz.recorder import Recorder
 
 STAGE_OPTIONS = {"extract": ExtractOptions, "match": MatchOptions, "cluster": ClusterOptions,
                  "mapper": MapperOptions, "merge": MergeOptions}
@@ -49,11 +49,11 @@ def reconstruct(images: str | Path | None, workspace: str | Path, workers: int =
 
     >>> models, report = reconstruct("photos", "work", max_cluster_size=50, seed=0)  # doctest: +SKIP
     """
-    from sfm.executors import LocalExecutor
-    from sfm.process_pool import start_pool_server
+    from sfm.execution.local import LocalExecutor
+    from sfm.execution.process_pool import start_pool_server
 
     if executor == "dask":
-        from sfm.dask_executor import DaskExecutor
+        from sfm.execution.dask_cluster import DaskExecutor
 
         runner = DaskExecutor(scheduler, workers)
     elif executor == "local" and scheduler is None:

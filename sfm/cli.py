@@ -14,12 +14,12 @@ import sys
 import traceback
 from pathlib import Path
 
-from sfm.clustering import ClusterOptions
+from sfm.stages.cluster import ClusterOptions
 from sfm.errors import GraphsfmError, InputError
-from sfm.mapper_input import MapperOptions
-from sfm.options import add_options, options_from_args
-from sfm.rendered import RenderOptions
-from sfm.synthetic import SynthOptions
+from sfm.mapper.payload import MapperOptions
+from sfm.core.options import add_options, options_from_args
+from sfm.synthetic.rendered import RenderOptions
+from sfm.synthetic.scenes import SynthOptions
 
 log = logging.getLogger("sfm")
 
@@ -58,11 +58,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
     workspace = Path(args.workspace)
     if args.scene == "rendered":
         opts = RenderOptions(num_images=args.num_images, seed=args.seed)
-        from sfm.rendered import write_rendered_scene
+        from sfm.synthetic.rendered import write_rendered_scene
 
         summary = write_rendered_scene(workspace, opts)
     else:
-        from sfm.synthetic import run_synth
+        from sfm.synthetic.scenes import run_synth
 
         opts = options_from_args(SynthOptions, args)
         try:
@@ -74,8 +74,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from sfm.colmap_io import read_model
-    from sfm.evaluation import evaluate, gt_from_reconstruction, read_gt_table
+    from sfm.io.colmap_model import read_model
+    from sfm.evaluation.metrics import evaluate, gt_from_reconstruction, read_gt_table
 
     model = Path(args.model)
     gt_path = Path(args.gt)
@@ -91,7 +91,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from sfm.colmap_io import read_model, write_model, write_ply
+    from sfm.io.colmap_model import read_model, write_model, write_ply
 
     model = Path(args.model)
     if not model.exists():
@@ -109,7 +109,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def _recorder(args: argparse.Namespace, stage: str):
-    from sfm.recording import Recorder
+    from sfm.viz.recorder import Recorder
 
     workspace = Path(args.workspace)
     if args.no_recording:
@@ -120,7 +120,7 @@ def _recorder(args: argparse.Namespace, stage: str):
 def cmd_cluster(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from sfm.clustering import run_cluster
+    from sfm.stages.cluster import run_cluster
 
     options = options_from_args(ClusterOptions, args)
     with _recorder(args, "cluster") as recorder:
@@ -131,12 +131,12 @@ def cmd_cluster(args: argparse.Namespace) -> int:
 
 def _executor(args: argparse.Namespace):
     if getattr(args, "executor", "local") == "dask":
-        from sfm.dask_executor import DaskExecutor
+        from sfm.execution.dask_cluster import DaskExecutor
 
         return DaskExecutor(scheduler=args.scheduler, workers=getattr(args, "workers", 0) or getattr(args, "num_workers", 0))
     if getattr(args, "scheduler", None):
         raise InputError("--scheduler needs --executor dask")
-    from sfm.executors import LocalExecutor
+    from sfm.execution.local import LocalExecutor
 
     return LocalExecutor(workers=getattr(args, "workers", 0))
 
@@ -150,7 +150,7 @@ def _add_executor_flags(p: argparse.ArgumentParser, workers: bool = True) -> Non
 
 
 def cmd_map(args: argparse.Namespace) -> int:
-    from sfm.mapping import run_map
+    from sfm.stages.map import run_map
 
     options = options_from_args(MapperOptions, args)
     with _recorder(args, "map") as recorder, _executor(args) as executor:
@@ -162,14 +162,14 @@ def cmd_map(args: argparse.Namespace) -> int:
 def cmd_extract(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from sfm.features import ExtractOptions, run_extract
+    from sfm.stages.extract import ExtractOptions, run_extract
 
     options = options_from_args(ExtractOptions, args)
     _check_image_dir(args.images)
     with _executor(args) as executor:
         result = run_extract(Path(args.images), Path(args.workspace), options, _remote(executor))
     with _recorder(args, "extract") as recorder:
-        from sfm.visualize import log_images
+        from sfm.viz.frontend import log_images
 
         log_images(recorder, Path(args.images), Path(args.workspace))
     print(json.dumps(asdict(result), indent=2))
@@ -179,13 +179,13 @@ def cmd_extract(args: argparse.Namespace) -> int:
 def cmd_match(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from sfm.matching import MatchOptions, run_match
+    from sfm.stages.match import MatchOptions, run_match
 
     options = options_from_args(MatchOptions, args)
     with _executor(args) as executor:
         result = run_match(Path(args.workspace), options, _remote(executor))
     with _recorder(args, "match") as recorder:
-        from sfm.visualize import log_verified_graph
+        from sfm.viz.frontend import log_verified_graph
 
         log_verified_graph(recorder, Path(args.workspace))
     print(json.dumps(asdict(result), indent=2))
@@ -203,11 +203,11 @@ def _check_image_dir(images: str) -> None:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from sfm.clustering import ClusterOptions
-    from sfm.features import ExtractOptions
-    from sfm.matching import MatchOptions
-    from sfm.merge import MergeOptions
-    from sfm.pipeline import ReconstructOptions, run_reconstruct
+    from sfm.stages.cluster import ClusterOptions
+    from sfm.stages.extract import ExtractOptions
+    from sfm.stages.match import MatchOptions
+    from sfm.merge.cluster_graph import MergeOptions
+    from sfm.stages.merge import ReconstructOptions, run_reconstruct
 
     if args.images is not None:
         _check_image_dir(args.images)
@@ -216,8 +216,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         cluster=options_from_args(ClusterOptions, args), mapper=options_from_args(MapperOptions, args),
         merge=options_from_args(MergeOptions, args))
     workspace = Path(args.workspace)
-    from sfm.process_pool import start_pool_server
-    from sfm.recording import Recorder
+    from sfm.execution.process_pool import start_pool_server
+    from sfm.viz.recorder import Recorder
 
     if getattr(args, "executor", "local") == "local":
         start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
@@ -231,12 +231,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from sfm.api import make_options
-    from sfm.colmap_io import read_model
-    from sfm.evaluation import evaluate, read_gt_table
-    from sfm.executors import LocalExecutor
-    from sfm.pipeline import run_reconstruct
-    from sfm.recording import Recorder
-    from sfm.rendered import RenderOptions, write_rendered_scene
+    from sfm.io.colmap_model import read_model
+    from sfm.evaluation.metrics import evaluate, read_gt_table
+    from sfm.execution.local import LocalExecutor
+    from sfm.stages.merge import run_reconstruct
+    from sfm.viz.recorder import Recorder
+    from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
 
     workspace = Path(args.workspace)
     if (workspace / "database.db").exists():
@@ -257,8 +257,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_merge(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from sfm.merge import MergeOptions
-    from sfm.pipeline import run_merge
+    from sfm.merge.cluster_graph import MergeOptions
+    from sfm.stages.merge import run_merge
 
     with _recorder(args, "merge") as recorder:
         result = run_merge(Path(args.workspace), options_from_args(MapperOptions, args), options_from_args(MergeOptions, args), recorder)
@@ -304,9 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_recording_flags(p)
     p.set_defaults(func=cmd_map)
 
-    from sfm.features import ExtractOptions
-    from sfm.matching import MatchOptions
-    from sfm.merge import MergeOptions
+    from sfm.stages.extract import ExtractOptions
+    from sfm.stages.match import MatchOptions
+    from sfm.merge.cluster_graph import MergeOptions
 
     p = sub.add_parser("extract", help="SIFT features of every image into WORK/database.db")
     p.add_argument("--images", required=True, help="image folder (searched recursively)")

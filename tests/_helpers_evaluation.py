@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.camera_models import project
-from sfm.geometry import Sim3, look_at, rotation_about_axis
-from sfm.ground_truth import GTPose
-from sfm.model import Camera, Image, Reconstruction
+from sfm.core.camera_models import project
+from sfm.core.geometry import Sim3, look_at, rotation_about_axis
+from sfm.evaluation.ground_truth import GTPose
+from sfm.core.model import Camera, Image, Reconstruction
 
 N_CAMS = 20
 SIM_EST_FROM_GT = Sim3(

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from sfm.database import Database
+from sfm.io.database import Database
 
 FAST = {"num_workers": 1, "max_num_features": 1000}
 

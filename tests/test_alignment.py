@@ -1,5 +1,5 @@
-"""Tests of sfm.alignment: the robust similarity between estimated and GT camera centres, alone
-and through sfm.evaluation (outliers, small inputs, thresholds, collinear centres)."""
+"""Tests of sfm.evaluation.alignment: the robust similarity between estimated and GT camera centres, alone
+and through sfm.evaluation.metrics (outliers, small inputs, thresholds, collinear centres)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from _helpers_evaluation import N_CAMS, SIM_EST_FROM_GT, UP, _estimate, _gt_of, _ring_scene
 
-from sfm.alignment import align_centers, default_alignment_threshold, scene_extent
-from sfm.evaluation import evaluate
-from sfm.geometry import look_at, umeyama
-from sfm.ground_truth import gt_from_reconstruction
-from sfm.model import Camera, Image, Reconstruction
+from sfm.evaluation.alignment import align_centers, default_alignment_threshold, scene_extent
+from sfm.evaluation.metrics import evaluate
+from sfm.core.geometry import look_at, umeyama
+from sfm.evaluation.ground_truth import gt_from_reconstruction
+from sfm.core.model import Camera, Image, Reconstruction
 
 
 def _set_center(image: Image, center: np.ndarray) -> None:

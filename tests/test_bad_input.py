@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from _helpers_features import textured
 
-from sfm.colmap_io import read_model
-from sfm.rendered import RenderOptions, write_rendered_scene
+from sfm.io.colmap_model import read_model
+from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
 
 
 def graphsfm(*argv: str) -> subprocess.CompletedProcess:

@@ -1,4 +1,4 @@
-"""COLMAP's image filter after global BA (sfm.mapper_ba.drop_degenerate_cameras)."""
+"""COLMAP's image filter after global BA (sfm.mapper.bundle_adjuster.drop_degenerate_cameras)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sfm.evaluation import read_gt_table
-from sfm.mapper_input import MapperOptions
-from sfm.mapper_state import MapperState
-from sfm.mapping import load_payloads
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.evaluation.metrics import read_gt_table
+from sfm.mapper.payload import MapperOptions
+from sfm.mapper.state import MapperState
+from sfm.stages.map import load_payloads
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 @pytest.fixture(scope="module")

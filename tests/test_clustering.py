@@ -10,11 +10,11 @@ import pytest
 from graph.image_graph import build_image_graph
 from graph.partition import cut_weight
 from sfm.cli import main
-from sfm.clustering import ClusterOptions, run_cluster
-from sfm.database import Database
+from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.io.database import Database
 from sfm.errors import InputError
-from sfm.recording import entity_paths
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.viz.recorder import entity_paths
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def _graph_from_db(path):

@@ -7,9 +7,9 @@ import os
 import numpy as np
 import pytest
 
-from sfm import colmap_io
-from sfm.geometry import quaternion_to_rotation, rotation_to_quaternion
-from sfm.model import Camera, Image, Reconstruction
+from sfm.io import colmap_model as colmap_io
+from sfm.core.geometry import quaternion_to_rotation, rotation_to_quaternion
+from sfm.core.model import Camera, Image, Reconstruction
 
 
 def random_reconstruction(seed: int = 0, num_images: int = 10, num_points: int = 200

@@ -12,9 +12,9 @@ pytest.importorskip("pycolmap")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from colmap_on_database import run_colmap_incremental  # noqa: E402
 
-from sfm.colmap_io import read_model  # noqa: E402
-from sfm.evaluation import evaluate, read_gt_table  # noqa: E402
-from sfm.synthetic import SynthOptions, run_synth  # noqa: E402
+from sfm.io.colmap_model import read_model  # noqa: E402
+from sfm.evaluation.metrics import evaluate, read_gt_table  # noqa: E402
+from sfm.synthetic.scenes import SynthOptions, run_synth  # noqa: E402
 
 
 def _map_with_colmap(tmp_path: Path, opts: SynthOptions):

@@ -7,11 +7,11 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from sfm.dask_executor import DaskExecutor
-from sfm.executors import LocalExecutor
-from sfm.mapper_input import MapperOptions
-from sfm.mapping import load_payloads
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.execution.dask_cluster import DaskExecutor
+from sfm.execution.local import LocalExecutor
+from sfm.mapper.payload import MapperOptions
+from sfm.stages.map import load_payloads
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def test_dask_local_cluster_matches_local_executor(tmp_path):
@@ -34,10 +34,10 @@ def test_dask_local_cluster_matches_local_executor(tmp_path):
 def test_dask_extract_and_match_write_the_same_database(tmp_path):
     """Features and verified pairs computed on Dask workers (image bytes and feature arrays travel,
     not paths) equal the local ones."""
-    from sfm.database import Database
-    from sfm.features import ExtractOptions, run_extract
-    from sfm.matching import MatchOptions, run_match
-    from sfm.rendered import RenderOptions, write_rendered_scene
+    from sfm.io.database import Database
+    from sfm.stages.extract import ExtractOptions, run_extract
+    from sfm.stages.match import MatchOptions, run_match
+    from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
 
     write_rendered_scene(tmp_path / "scene", RenderOptions(num_images=6, seed=1))
     images = tmp_path / "scene" / "images"

@@ -1,4 +1,4 @@
-"""Tests of sfm.database: round trips, pair ids, transactions, crash safety, the COLMAP 3 descriptor
+"""Tests of sfm.io.database: round trips, pair ids, transactions, crash safety, the COLMAP 3 descriptor
 table. Interop with pycolmap is in test_database_pycolmap.py; ``db_path`` is in conftest.py."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import pytest
 from _helpers_database import _quat_wxyz, _raw
 from scipy.spatial.transform import Rotation
 
-from sfm.database import (
+from sfm.io.database import (
     CAMERA_MODEL_IDS,
     CAMERA_MODEL_NAMES,
     MAX_IMAGE_ID,
@@ -253,7 +253,7 @@ _CHILD = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from sfm.database import Database, TwoViewGeometry
+    from sfm.io.database import Database, TwoViewGeometry
     db = Database(sys.argv[1])
     cam = db.add_camera("SIMPLE_RADIAL", 100, 80, [90.0, 50.0, 40.0, 0.0])
     a, b = db.add_image("a.jpg", cam), db.add_image("b.jpg", cam)

@@ -1,4 +1,4 @@
-"""Tests of sfm.database against pycolmap: codes, schema, pycolmap reading and mapping our
+"""Tests of sfm.io.database against pycolmap: codes, schema, pycolmap reading and mapping our
 database, and us reading a database pycolmap wrote. ``db_path`` is in conftest.py."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from _helpers_database import _quat_wxyz, _raw
 from scipy.spatial.transform import Rotation
 
-from sfm.database import CAMERA_MODEL_IDS, Database, TwoViewConfig, TwoViewGeometry
+from sfm.io.database import CAMERA_MODEL_IDS, Database, TwoViewConfig, TwoViewGeometry
 
 
 def _pycolmap():

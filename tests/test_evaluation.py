@@ -1,4 +1,4 @@
-"""Tests of sfm.evaluation (pose errors, pair errors, AUC, structure metrics) on synthetic scenes
+"""Tests of sfm.evaluation.metrics (pose errors, pair errors, AUC, structure metrics) on synthetic scenes
 with known answers. The alignment is tested in test_alignment.py, the GT input in
 test_ground_truth.py."""
 
@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 from _helpers_evaluation import N_CAMS, SIM_EST_FROM_GT, _estimate, _gt_of, _ring_scene
 
-from sfm.evaluation import auc, evaluate, relative_pose_errors
-from sfm.geometry import (
+from sfm.evaluation.metrics import auc, evaluate, relative_pose_errors
+from sfm.core.geometry import (
     angle_between_deg,
     quaternion_to_rotation,
     rotation_about_axis,
     rotation_angle_deg,
 )
-from sfm.ground_truth import GTPose
-from sfm.model import Image, Reconstruction
+from sfm.evaluation.ground_truth import GTPose
+from sfm.core.model import Image, Reconstruction
 
 N_PAIRS = N_CAMS * (N_CAMS - 1) // 2
 
@@ -165,7 +165,7 @@ def test_extra_images_not_in_gt_are_only_counted():
 
 # ------------------------------------------------------------------------- pair errors
 def _reference_pair_errors(re, te, rg, tg, registered):
-    """Per pair, straight from the definition (arccos-based helpers of sfm.geometry)."""
+    """Per pair, straight from the definition (arccos-based helpers of sfm.core.geometry)."""
     out = []
     for i, j in zip(*np.triu_indices(len(re), 1)):
         if not (registered[i] and registered[j]):
@@ -180,7 +180,7 @@ def _reference_pair_errors(re, te, rg, tg, registered):
 
 
 def test_relative_pose_errors_match_definition_and_are_block_independent():
-    from sfm.evaluation import _pair_error_blocks, _prepare_poses
+    from sfm.evaluation.metrics import _pair_error_blocks, _prepare_poses
 
     rng = np.random.default_rng(7)
     n = 13
@@ -262,7 +262,7 @@ def test_auc_matches_reference_implementation():
 
 
 def test_absolute_rotation_angles_accurate_at_every_angle():
-    from sfm.evaluation import _rotation_angles_deg
+    from sfm.evaluation.metrics import _rotation_angles_deg
 
     rng = np.random.default_rng(2)
     base = np.stack([quaternion_to_rotation(rng.normal(size=4)) for _ in range(7)])

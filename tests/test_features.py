@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from _helpers_features import FAST, close_sets, read_db, textured, write
 
-from sfm import features
-from sfm.database import Database
+from sfm.stages import extract as features
+from sfm.io.database import Database
 from sfm.errors import InputError
-from sfm.features import ExtractOptions, extract_features, quantize_descriptors, run_extract
-from sfm.options import add_options, options_from_args
+from sfm.stages.extract import ExtractOptions, extract_features, quantize_descriptors, run_extract
+from sfm.core.options import add_options, options_from_args
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -97,8 +97,8 @@ def test_max_num_features_keeps_the_largest_scale_locations_by_default():
 def test_describing_all_or_only_the_kept_keypoints_gives_the_same_features(monkeypatch):
     """Small images describe every detection, large ones only the kept keypoints (a second
     pyramid): the same keypoints and descriptors either way."""
-    import sfm.features as features
-    import sfm.sift as sift
+    import sfm.stages.extract as features
+    import sfm.features.sift as sift
 
     img = cv2.cvtColor(textured(400, 400, 7), cv2.COLOR_BGR2GRAY)
     opts = ExtractOptions(max_num_features=80)

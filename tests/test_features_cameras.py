@@ -11,7 +11,7 @@ import pytest
 from _helpers_features import FAST, read_db, textured, write
 
 from sfm.errors import InputError
-from sfm.features import ExtractOptions, run_extract
+from sfm.stages.extract import ExtractOptions, run_extract
 
 
 # ------------------------------------------------------------------------- cameras

@@ -12,8 +12,8 @@ from _helpers_features import FAST, close_sets, read_db, textured, write
 from PIL import Image
 
 from sfm.errors import InputError
-from sfm.features import ExtractOptions, run_extract
-from sfm.images import find_images, focal_prior_from_exif, read_gray
+from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.io.image_files import find_images, focal_prior_from_exif, read_gray
 
 
 # ------------------------------------------------------------------------- EXIF

@@ -1,4 +1,4 @@
-"""Tests of sfm.ground_truth: GT from a reconstruction, the GT table reader, and the real GT
+"""Tests of sfm.evaluation.ground_truth: GT from a reconstruction, the GT table reader, and the real GT
 tables of ../shared/data."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from _helpers_evaluation import _estimate, _ring_scene
 
-from sfm.evaluation import evaluate
-from sfm.ground_truth import gt_from_reconstruction, read_gt_table
-from sfm.model import Camera, Image, Reconstruction
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import gt_from_reconstruction, read_gt_table
+from sfm.core.model import Camera, Image, Reconstruction
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from sfm.cli import main
-from sfm.colmap_io import read_model
-from sfm.evaluation import evaluate, read_gt_table
-from sfm.incremental import reconstruct_incremental
-from sfm.mapper_input import MapperOptions
-from sfm.mapping import load_payloads, run_map
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.io.colmap_model import read_model
+from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.mapper.incremental import reconstruct_incremental
+from sfm.mapper.payload import MapperOptions
+from sfm.stages.map import load_payloads, run_map
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def test_orbit_with_outliers_is_fully_and_accurately_registered(tmp_path):
@@ -37,7 +37,7 @@ def test_final_ba_split_into_track_parts_when_over_budget(tmp_path, caplog):
     consensus of BAs over random parts of the tracks (backend.partitioned_ba), then every
     point is re-estimated with the cameras held; every image stays registered, accurate, and
     every point stays near the 0.5 px noise."""
-    caplog.set_level("INFO", logger="sfm.mapper_state")
+    caplog.set_level("INFO", logger="sfm.mapper.state")
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=24, observations_per_image=800, outlier_ratio=0.2, seed=0))
     assert main(["map", "--workspace", str(tmp_path), "--ba-max-observations", "4000"]) == 0
     model = read_model(tmp_path / "sparse" / "0")

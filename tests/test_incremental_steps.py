@@ -7,18 +7,18 @@ import types
 
 import numpy as np
 
-import sfm.incremental as incremental
-from sfm.incremental import (
+import sfm.mapper.incremental as incremental
+from sfm.mapper.incremental import (
     MAX_REFINEMENT_CHANGE,
     _final_refinement,
     _try_initial_pair,
     two_view_score,
 )
-from sfm.mapper_ba import FINAL_TOLERANCE, GROWING_TOLERANCE
-from sfm.mapper_input import MapperOptions
-from sfm.mapper_state import MapperState
-from sfm.mapping import load_payloads
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.mapper.bundle_adjuster import FINAL_TOLERANCE, GROWING_TOLERANCE
+from sfm.mapper.payload import MapperOptions
+from sfm.mapper.state import MapperState
+from sfm.stages.map import load_payloads
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def _full_search_winner(state: MapperState) -> tuple[int, int, int, list]:
@@ -178,9 +178,9 @@ def test_a_stalled_model_retries_failed_images_that_see_any_more_points(tmp_path
 def test_every_bundle_adjustment_weighs_by_keypoint_scale(tmp_path, monkeypatch):
     """Local, growing global and final BAs all get each observation's sigma from its keypoint
     scale (rows aligned with the observations they weigh); with scale weights off, none."""
-    import sfm.mapper_ba as mapper_ba
-    from sfm.mapper_input import MapperInput
-    from sfm.sift import localization_sigma
+    import sfm.mapper.bundle_adjuster as mapper_ba
+    from sfm.mapper.payload import MapperInput
+    from sfm.features.sift import localization_sigma
 
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=12, observations_per_image=500, seed=6))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
@@ -211,7 +211,7 @@ def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_p
     """The local BAs (Gauss-Newton first) use ``loss_scale``, the global BAs (growing and
     final, Levenberg-Marquardt) ``global_loss_scale``, by default ``max_reproj_error``: least
     squares on every observation the model keeps, as COLMAP's global BA."""
-    import sfm.mapper_ba as mapper_ba
+    import sfm.mapper.bundle_adjuster as mapper_ba
 
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=14, observations_per_image=500, seed=3))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=False, min_inliers=15)

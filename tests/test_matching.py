@@ -8,12 +8,12 @@ import shutil
 import numpy as np
 import pytest
 
-from sfm.camera_models import project
-from sfm.database import Database
+from sfm.core.camera_models import project
+from sfm.io.database import Database
 from sfm.errors import InputError
-from sfm.geometry import look_at, quaternion_to_rotation, rotation_angle_deg
-from sfm.matching import MatchOptions, match_descriptors, normalize_descriptors, run_match
-from sfm.pairs import exhaustive_pairs, select_pairs, sequential_pairs
+from sfm.core.geometry import look_at, quaternion_to_rotation, rotation_angle_deg
+from sfm.stages.match import MatchOptions, match_descriptors, normalize_descriptors, run_match
+from sfm.matching.pairs import exhaustive_pairs, select_pairs, sequential_pairs
 
 
 def rootsift_like(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -84,7 +84,7 @@ def test_brute_force_equals_a_direct_computation():
 def test_brute_force_blocks_and_reused_buffer_give_the_same_answer():
     """Rows go in blocks through one reused buffer: any block size, and a buffer left larger or
     smaller by the pair before, give the nearest neighbours of one full product."""
-    from sfm.descriptor_matching import _nearest_brute
+    from sfm.matching.descriptors import _nearest_brute
 
     rng = np.random.default_rng(3)
     for n1, n2 in ((700, 650), (90, 40), (1200, 1300), (5, 1)):
@@ -255,7 +255,7 @@ def test_run_match_skips_images_without_keypoints(tmp_path, caplog):
     write_two_cluster_database(tmp_path / "database.db")
     with Database(tmp_path / "database.db") as db:
         db.add_image("empty.png", 1)
-    with caplog.at_level(logging.WARNING, logger="sfm.matching"):
+    with caplog.at_level(logging.WARNING, logger="sfm.stages.match"):
         result = run_match(tmp_path, MatchOptions(num_workers=1, sequential=1))
     assert "empty.png has no keypoints" in caplog.text
     assert result.num_images == 5 and result.num_pairs_considered == 10

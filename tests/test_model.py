@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sfm.camera_models import (
+from sfm.core.camera_models import (
     has_bogus_params,
     params_from_colmap,
     params_to_colmap,
     project,
     unproject,
 )
-from sfm.geometry import (
+from sfm.core.geometry import (
     Sim3,
     look_at,
     quaternion_to_rotation,
@@ -22,7 +22,7 @@ from sfm.geometry import (
     rotation_to_quaternion,
     umeyama,
 )
-from sfm.model import INVALID_POINT3D, Camera, Image, Reconstruction
+from sfm.core.model import INVALID_POINT3D, Camera, Image, Reconstruction
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

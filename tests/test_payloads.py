@@ -8,10 +8,10 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from sfm.executors import LocalExecutor
-from sfm.mapper_input import MapperInput, MapperOptions
-from sfm.mapping import ClusterPayloads, load_payloads
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.execution.local import LocalExecutor
+from sfm.mapper.payload import MapperInput, MapperOptions
+from sfm.stages.map import ClusterPayloads, load_payloads
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +77,8 @@ def test_keypoint_scales_reach_the_mapper_as_observation_sigmas(scene, tmp_path)
     weighs each observation by ``localization_sigma`` of its scale unless told not to."""
     import shutil
 
-    from sfm.database import Database
-    from sfm.mapper_state import MapperState
+    from sfm.io.database import Database
+    from sfm.mapper.state import MapperState
 
     db = tmp_path / "database.db"
     shutil.copy(scene[0], db)

@@ -9,10 +9,10 @@ import pytest
 
 from sfm.api import make_options, reconstruct
 from sfm.cli import main
-from sfm.colmap_io import read_model
-from sfm.evaluation import evaluate, read_gt_table
-from sfm.recording import entity_paths
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.io.colmap_model import read_model
+from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.viz.recorder import entity_paths
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def test_reconstruct_from_database_with_clusters(tmp_path):
@@ -48,7 +48,7 @@ def test_python_api_and_unknown_option(tmp_path):
 
 def test_two_disconnected_scenes_give_two_models(tmp_path):
     """Two synthetic scenes in one database (no pair between them): two complete models."""
-    from sfm.database import Database
+    from sfm.io.database import Database
 
     a, b = tmp_path / "a", tmp_path / "b"
     run_synth(a, SynthOptions(scene="orbit", num_images=14, observations_per_image=400, seed=1))

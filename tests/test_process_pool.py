@@ -1,5 +1,5 @@
 """The local pools' fork server: workers find the pipeline imported when they re-run the
-caller's main module (``sfm.process_pool``)."""
+caller's main module (``sfm.execution.process_pool``)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def pid(_):
     return os.getpid()
 
 if __name__ == "__main__":
-    from sfm.process_pool import pool_context
+    from sfm.execution.process_pool import pool_context
     for _ in range(2):  # two pools, as extract and match
         with ProcessPoolExecutor(2, mp_context=pool_context()) as pool:
             assert len(set(pool.map(pid, range(8)))) >= 1

@@ -1,11 +1,11 @@
-"""The Rerun recorder (``sfm.recording``): its stream opens in a background thread."""
+"""The Rerun recorder (``sfm.viz.recorder``): its stream opens in a background thread."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sfm.recording import Recorder, entity_paths
+from sfm.viz.recorder import Recorder, entity_paths
 
 
 def test_what_is_logged_right_after_construction_reaches_the_file(tmp_path):

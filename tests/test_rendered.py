@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from sfm.evaluation import read_gt_table
-from sfm.rendered import RenderOptions, write_rendered_scene
+from sfm.evaluation.metrics import read_gt_table
+from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
 
 
 def test_rendered_images_match_their_ground_truth(tmp_path):

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from sfm.rendered import RenderOptions, write_rendered_scene
+from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
 
 NUM_IMAGES = 16
 PAIRS = NUM_IMAGES * (NUM_IMAGES - 1) // 2  # exhaustive matching
@@ -171,5 +171,5 @@ def test_a_changed_option_recomputes_its_stage_and_the_later_ones_only(images, r
     stages = ledger(ws)
     assert stages["extract"]["options"]["max_num_features"] == 1000
     with sqlite3.connect(ws / "database.db") as conn:
-        # 1,000 keypoint locations, each with at most two orientations (sfm.sift)
+        # 1,000 keypoint locations, each with at most two orientations (sfm.features.sift)
         assert 1000 <= conn.execute("SELECT MAX(rows) FROM keypoints").fetchone()[0] <= 2000

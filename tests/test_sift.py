@@ -1,10 +1,10 @@
-"""Keypoint selection and descriptor storage (sfm.sift), on hand-made keypoint lists."""
+"""Keypoint selection and descriptor storage (sfm.features.sift), on hand-made keypoint lists."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from sfm.sift import keypoint_scales, localization_sigma, top_locations
+from sfm.features.sift import keypoint_scales, localization_sigma, top_locations
 
 
 def test_top_locations_counts_locations_not_orientations():

@@ -1,16 +1,16 @@
-"""Registration without PnP (sfm.structureless) on a synthetic street with exact ground truth."""
+"""Registration without PnP (sfm.mapper.structureless) on a synthetic street with exact ground truth."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from sfm.evaluation import read_gt_table
-from sfm.incremental import _relative_pose
-from sfm.mapper_input import MapperOptions
-from sfm.mapper_state import MapperState
-from sfm.mapping import load_payloads
-from sfm.structureless import register_structureless
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.evaluation.metrics import read_gt_table
+from sfm.mapper.incremental import _relative_pose
+from sfm.mapper.payload import MapperOptions
+from sfm.mapper.state import MapperState
+from sfm.stages.map import load_payloads
+from sfm.mapper.structureless import register_structureless
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:

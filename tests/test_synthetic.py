@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sfm.database import Database, TwoViewConfig
-from sfm.evaluation import evaluate, read_gt_table
-from sfm.geometry import rotation_about_axis
-from sfm.synthetic import SynthOptions, gt_reconstruction, make_scene, run_synth
-from sfm.synthetic_matching import essential_matrix, simulate_matching
+from sfm.io.database import Database, TwoViewConfig
+from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.core.geometry import rotation_about_axis
+from sfm.synthetic.scenes import SynthOptions, gt_reconstruction, make_scene, run_synth
+from sfm.synthetic.matching import essential_matrix, simulate_matching
 
 
 @pytest.mark.parametrize("scene", ["orbit", "street", "aerial"])
@@ -112,7 +112,7 @@ def test_run_synth_database_and_gt(tmp_path):
 
 def test_evaluate_recovers_a_known_rotation_error(tmp_path):
     """The GT model scores perfectly; rotating one camera by 1.5 degrees is measured exactly."""
-    from sfm.colmap_io import read_model
+    from sfm.io.colmap_model import read_model
 
     run_synth(tmp_path, SynthOptions(num_images=20, observations_per_image=300, seed=4))
     gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sfm.database import Database
-from sfm.database_schema import TwoViewGeometry
-from sfm.features import ExtractOptions, run_extract
-from sfm.geometry import look_at
-from sfm.ground_truth import GTPose, read_gt_table
-from sfm.matching import MatchOptions, run_match
-from sfm.rendered import RenderOptions, write_rendered_scene
+from sfm.io.database import Database
+from sfm.io.database_schema import TwoViewGeometry
+from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.core.geometry import look_at
+from sfm.evaluation.ground_truth import GTPose, read_gt_table
+from sfm.stages.match import MatchOptions, run_match
+from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from check_matches import (

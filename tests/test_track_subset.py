@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from backend.track_subset import select_tracks
-from sfm.geometry import look_at
-from sfm.triangulation import refine_points
+from sfm.core.geometry import look_at
+from sfm.mapper.triangulation import refine_points
 
 
 def _random_observations(seed: int = 0, images: int = 6, points: int = 400):

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.geometry import look_at
-from sfm.synthetic import SynthOptions, make_scene
-from sfm.synthetic_matching import simulate_matching
-from sfm.tracks import _conflict_free_components, _triangle_support, build_tracks
-from sfm.triangulation import depths, max_triangulation_angles, triangulate_dlt
+from sfm.core.geometry import look_at
+from sfm.synthetic.scenes import SynthOptions, make_scene
+from sfm.synthetic.matching import simulate_matching
+from sfm.mapper.tracks import _conflict_free_components, _triangle_support, build_tracks
+from sfm.mapper.triangulation import depths, max_triangulation_angles, triangulate_dlt
 
 
 def test_tracks_equal_ground_truth_points_without_outliers():

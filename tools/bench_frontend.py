@@ -39,11 +39,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from check_matches import check_matches
 
-from sfm.database import Database
-from sfm.features import ExtractOptions, run_extract
-from sfm.ground_truth import read_gt_table
-from sfm.intrinsics import read_intrinsics
-from sfm.matching import MatchOptions, run_match
+from sfm.io.database import Database
+from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.evaluation.ground_truth import read_gt_table
+from sfm.features.cameras import read_intrinsics
+from sfm.stages.match import MatchOptions, run_match
 
 MIN_INLIERS = 15
 

@@ -23,14 +23,14 @@ from pathlib import Path
 
 import cv2  # noqa: F401 - same reason
 
-from sfm.clustering import ClusterOptions, run_cluster
-from sfm.colmap_io import read_model
-from sfm.evaluation import evaluate, read_gt_table
-from sfm.executors import LocalExecutor
-from sfm.mapper_input import MapperOptions
-from sfm.mapping import run_map
-from sfm.merge import MergeOptions
-from sfm.pipeline import run_merge
+from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.io.colmap_model import read_model
+from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.execution.local import LocalExecutor
+from sfm.mapper.payload import MapperOptions
+from sfm.stages.map import run_map
+from sfm.merge.cluster_graph import MergeOptions
+from sfm.stages.merge import run_merge
 
 
 def run_graphsfm(db: Path, out: Path, max_cluster_size: int | None, workers: int) -> tuple[Path, float, int]:

@@ -20,11 +20,11 @@ import sys
 import time
 from pathlib import Path
 
-from sfm.clustering import ClusterOptions, run_cluster
-from sfm.executors import LocalExecutor
-from sfm.mapper_input import MapperOptions
-from sfm.mapping import run_map
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.execution.local import LocalExecutor
+from sfm.mapper.payload import MapperOptions
+from sfm.stages.map import run_map
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def time_map(workspace: Path, executor) -> dict:
@@ -44,7 +44,7 @@ def time_map(workspace: Path, executor) -> dict:
 
 def make_executor(kind: str, workers: int):
     if kind == "dask":
-        from sfm.dask_executor import DaskExecutor
+        from sfm.execution.dask_cluster import DaskExecutor
 
         return DaskExecutor(workers=workers)
     return LocalExecutor(workers=workers)

@@ -3,7 +3,7 @@
     python tools/check_matches.py --workspace W --gt TABLE [--overlap-deg 30] [--min-inliers 15]
 
 For every verified pair of ``W/database.db`` (two_view_geometries config >= 2 and at least
-``--min-inliers`` inliers) whose two images are in the GT table (``sfm.ground_truth``:
+``--min-inliers`` inliers) whose two images are in the GT table (``sfm.evaluation.ground_truth``:
 ``IMAGE_NAME W H FX FY CX CY QW QX QY QZ TX TY TZ``, cam_from_world, OpenCV pixels), the GT
 fundamental matrix ``F = K2^-T [t]x R K1^-1`` (``R = R2 R1^T``, ``t = t2 - R t1``: the pose of
 camera 2 from camera 1) gives each stored inlier match its symmetric epipolar distance: the mean
@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm.database import Database
-from sfm.ground_truth import GTPose, read_gt_table
+from sfm.io.database import Database
+from sfm.evaluation.ground_truth import GTPose, read_gt_table
 
 
 # ------------------------------------------------------------------------------ library

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import cv2  # noqa: F401 - same reason
 
-from sfm.colmap_io import read_model
-from sfm.evaluation import evaluate, read_gt_table
-from sfm.synthetic import SynthOptions, run_synth
+from sfm.io.colmap_model import read_model
+from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.synthetic.scenes import SynthOptions, run_synth
 
 
 def run_colmap_incremental(workspace: Path, num_threads: int = -1, quiet: bool = True) -> tuple[Path | None, float]:

@@ -1,0 +1,312 @@
+"""Image files: finding them, reading their EXIF, decoding them to an upright 8-bit grey image.
+
+Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
+
+- An image is named by its path relative to the image folder with ``/`` separators
+  (:func:`find_images`: extensions jpg, jpeg, png, tif, tiff, bmp, webp in any case, searched
+  recursively, sorted by name).
+- EXIF ``Orientation`` (tag 0x0112) is honoured: the pixels are rotated/flipped to the upright
+  image *before* anything else sees them, so keypoints, widths and heights are all those of the
+  upright image (what a photo viewer shows). Pillow's TIFF reader applies the tag itself on
+  load; we rotate only images whose tag is still there after decoding.
+- Grey levels: 8-bit images are converted with ITU-R 601 luma (``0.299 R + 0.587 G + 0.114 B``,
+  as Pillow and ``cv2.cvtColor`` do; JPEGs are decoded straight to their luma channel, the same
+  formula); alpha is dropped; palette images are expanded; 16-bit images are divided by 257
+  (65535 -> 255, the same as keeping the high byte, like COLMAP's FreeImage conversion); float
+  and 32-bit integer images are stretched from their min to their max.
+- Focal prior from EXIF (:func:`focal_prior_from_exif`), in pixels of the upright image:
+  ``FocalLengthIn35mmFilm / 36 * max(W, H)`` (36 mm is the long side of a 35 mm frame; COLMAP
+  divides by 35), else ``FocalLength`` (mm) times the sensor's pixels per mm from
+  ``FocalPlaneXResolution`` / ``FocalPlaneResolutionUnit``, rescaled by
+  ``max(W, H) / max(PixelXDimension, PixelYDimension)`` when the file was resized after the
+  camera wrote those tags; else no prior. Priors outside ``[0.1, 50] * max(W, H)`` are treated
+  as bogus EXIF and ignored.
+- A file that cannot be used raises :class:`BadImageError` whose message is the reason (empty
+  file, not an image, truncated, ...). Pillow's decompression-bomb limit is lifted while we read:
+  a 100-megapixel photo is a normal input here.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from io import BytesIO
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+logger = logging.getLogger(__name__)
+
+IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
+
+# EXIF tags (IFD0 and the Exif sub-IFD)
+_EXIF_IFD = 0x8769
+_ORIENTATION = 0x0112
+_MAKE, _MODEL = 0x010F, 0x0110
+_FOCAL_LENGTH = 0x920A
+_FOCAL_35MM = 0xA405
+_FOCAL_PLANE_X_RES, _FOCAL_PLANE_UNIT = 0xA20E, 0xA210
+_PIXEL_X_DIM, _PIXEL_Y_DIM = 0xA002, 0xA003
+_MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # inch, cm, mm, micrometre
+_PLAUSIBLE_FOCAL = (0.1, 50.0)  # times max(W, H)
+
+# EXIF orientation -> the Pillow transpose that makes the image upright (as ImageOps.exif_transpose)
+_UPRIGHT = {
+    2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180,
+    4: Image.Transpose.FLIP_TOP_BOTTOM, 5: Image.Transpose.TRANSPOSE,
+    6: Image.Transpose.ROTATE_270, 7: Image.Transpose.TRANSVERSE, 8: Image.Transpose.ROTATE_90,
+}  # fmt: skip
+_SIXTEEN_BIT_MODES = ("I;16", "I;16L", "I;16B", "I;16N")
+
+
+class BadImageError(Exception):
+    """A file that cannot be used as an image; the message says why."""
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What the camera of an image needs: upright size and EXIF facts.
+
+    ``focal_px`` is the EXIF focal prior in pixels of the upright image (None: EXIF gives none);
+    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``.
+    """
+
+    width: int
+    height: int
+    orientation: int = 1
+    make: str = ""
+    model: str = ""
+    focal_px: float | None = None
+    focal_source: str = "none"
+
+
+def find_images(image_dir: Path) -> list[str]:
+    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted."""
+    image_dir = Path(image_dir)
+    names = []
+    for root, dirs, files in os.walk(image_dir, followlinks=True):
+        dirs.sort()
+        for f in files:
+            if os.path.splitext(f)[1].lower() in IMAGE_EXTENSIONS:
+                names.append((Path(root) / f).relative_to(image_dir).as_posix())
+    return sorted(names)
+
+
+@contextmanager
+def _no_pixel_limit() -> Iterator[None]:
+    """Lift Pillow's decompression-bomb check (large photos are normal input) for a block."""
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            yield
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def _number(value: object) -> float | None:
+    """A finite float from an EXIF value (rational, int, tuple of one), or None."""
+    if isinstance(value, (tuple, list)):
+        value = value[0] if len(value) == 1 else None
+    try:
+        x = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _text(value: object) -> str:
+    if isinstance(value, bytes):
+        value = value.decode("latin-1", errors="replace")
+    return str(value).strip().strip("\x00").strip() if value is not None else ""
+
+
+def focal_prior_from_exif(tags: dict, width: int, height: int) -> tuple[float | None, str]:
+    """EXIF focal prior in pixels and its source (see the module docstring for the rules).
+
+    ``tags`` maps EXIF tag ids to values (IFD0 and the Exif sub-IFD merged); ``width`` and
+    ``height`` are the image's (either orientation: only ``max(W, H)`` matters).
+    """
+    max_size = max(width, height)
+    lo, hi = _PLAUSIBLE_FOCAL[0] * max_size, _PLAUSIBLE_FOCAL[1] * max_size
+    f35 = _number(tags.get(_FOCAL_35MM))
+    if f35 is not None and f35 > 0 and lo <= f35 / 36.0 * max_size <= hi:
+        return f35 / 36.0 * max_size, "exif-35mm"
+    f_mm = _number(tags.get(_FOCAL_LENGTH))
+    x_res = _number(tags.get(_FOCAL_PLANE_X_RES))
+    unit = _number(tags.get(_FOCAL_PLANE_UNIT))
+    unit_mm = _MM_PER_UNIT.get(int(unit) if unit is not None else 2)  # EXIF default: inches
+    if f_mm and f_mm > 0 and x_res and x_res > 0 and unit_mm is not None:
+        f_px = f_mm * x_res / unit_mm
+        exif_w, exif_h = _number(tags.get(_PIXEL_X_DIM)), _number(tags.get(_PIXEL_Y_DIM))
+        if exif_w and exif_h and exif_w > 0 and exif_h > 0:
+            f_px *= max_size / max(exif_w, exif_h)  # the file was resized after capture
+        if lo <= f_px <= hi:
+            return f_px, "exif-focal-plane"
+    return None, "none"
+
+
+def _exif_tags(im: Image.Image) -> dict:
+    """IFD0 and Exif sub-IFD tags merged (sub-IFD wins), read without decoding pixels."""
+    if im.format == "PNG" and "exif" not in im.info:
+        return {}  # PngImageFile.getexif() would decode the whole image to look after IDAT
+    try:
+        exif = im.getexif()
+        tags = dict(exif)
+        tags.update(exif.get_ifd(_EXIF_IFD))
+    except Exception:  # noqa: BLE001 - malformed EXIF is common and never fatal
+        return {}
+    return tags
+
+
+def _info_from_pil(im: Image.Image) -> ImageInfo:
+    tags = _exif_tags(im)
+    orientation = int(_number(tags.get(_ORIENTATION)) or 1)
+    orientation = orientation if orientation in _UPRIGHT else 1
+    width, height = im.size
+    # Pillow's TIFF reader already reports the upright size (and rotates the pixels on load)
+    upright_already = getattr(im, "_tile_size", im.size) != im.size
+    if orientation in (5, 6, 7, 8) and not upright_already:
+        width, height = height, width
+    focal, source = focal_prior_from_exif(tags, width, height)
+    return ImageInfo(
+        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source
+    )
+
+
+def _cv2_gray(data: bytes) -> np.ndarray | None:
+    """Decode with OpenCV (files Pillow cannot identify) to 8-bit grey, or None."""
+    try:
+        arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        return None
+    if arr is None or arr.size == 0:
+        return None
+    if arr.ndim == 3:
+        code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(arr.shape[2])
+        arr = arr[:, :, 0] if code is None else cv2.cvtColor(arr, code)
+    return _to_uint8(arr)
+
+
+def _to_uint8(arr: np.ndarray) -> np.ndarray:
+    """8-bit grey from any depth: 16-bit / 257, float and wider ints stretched min..max."""
+    if arr.dtype == np.uint8:
+        return np.ascontiguousarray(arr)
+    if arr.dtype.kind == "u" and arr.dtype.itemsize == 2:
+        return np.round(arr.astype(np.float32) / 257.0).astype(np.uint8)
+    a = np.nan_to_num(arr.astype(np.float64))
+    if arr.dtype.kind in "iu" and a.size and a.min() >= 0 and a.max() <= 65535:
+        return np.round(a / 257.0).astype(np.uint8)
+    lo, hi = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)
+    scale = 255.0 / (hi - lo) if hi > lo else 0.0
+    return np.round((a - lo) * scale).astype(np.uint8)
+
+
+def _pil_gray(im: Image.Image) -> Image.Image:
+    """Decode to an 8-bit 'L' image or a 16/32-bit single-channel image (numpy converts)."""
+    if im.format == "JPEG" and im.mode in ("RGB", "YCbCr"):
+        im.draft("L", im.size)  # decode only the luma channel: less memory, same grey values
+    if im.mode in _SIXTEEN_BIT_MODES or im.mode in ("I", "F", "L"):
+        im.load()
+        return im
+    return im.convert("L")  # RGB(A), LA, P, PA, 1, CMYK, ...: luma, alpha dropped
+
+
+def probe_image(path: Path) -> ImageInfo:
+    """Upright size and EXIF facts of an image file, reading only its header when possible."""
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            raise BadImageError("empty file")
+        with _no_pixel_limit(), Image.open(path) as im:
+            return _info_from_pil(im)
+    except UnidentifiedImageError:
+        gray = _cv2_gray(path.read_bytes())
+        if gray is None:
+            raise BadImageError("not an image Pillow or OpenCV can read") from None
+        return ImageInfo(int(gray.shape[1]), int(gray.shape[0]))
+    except (OSError, ValueError, SyntaxError, EOFError) as exc:
+        raise BadImageError(f"cannot read: {exc}") from None
+
+
+def read_gray(data: bytes) -> tuple[np.ndarray, ImageInfo]:
+    """Decode an image file's bytes to an upright (EXIF orientation applied) uint8 grey image."""
+    if not data:
+        raise BadImageError("empty file")
+    with _no_pixel_limit():
+        try:
+            im = Image.open(BytesIO(data))
+        except UnidentifiedImageError:
+            gray = _cv2_gray(data)
+            if gray is None:
+                raise BadImageError("not an image Pillow or OpenCV can read") from None
+            return gray, ImageInfo(int(gray.shape[1]), int(gray.shape[0]))
+        except (OSError, ValueError, SyntaxError, EOFError) as exc:
+            raise BadImageError(f"cannot read: {exc}") from None
+        try:
+            info = _info_from_pil(im)
+            decoded = _pil_gray(im)
+            # some Pillow readers (TIFF) rotate on load and then drop the tag: rotate only once
+            still_tagged = _number(_exif_tags(im).get(_ORIENTATION)) == info.orientation
+            if info.orientation in _UPRIGHT and still_tagged:
+                decoded = decoded.transpose(_UPRIGHT[info.orientation])
+            gray = _to_uint8(np.asarray(decoded))
+        except (OSError, ValueError, SyntaxError, EOFError) as exc:  # truncated, corrupt
+            raise BadImageError(f"cannot decode: {exc}") from None
+        finally:
+            im.close()
+    if gray.ndim != 2 or gray.shape != (info.height, info.width):
+        raise BadImageError(f"unexpected decoded shape {gray.shape} for mode {im.mode}")
+    return gray, info
+
+
+def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float, float]:
+    """``(small, sx, sy)``: ``gray`` shrunk (INTER_AREA) so its longer side is at most
+    ``max_image_size``; full-resolution pixels are ``x = (x_small + 0.5) * sx - 0.5`` (OpenCV's
+    pixel-centre convention), likewise y with ``sy``. ``sx == sy == 1`` when no shrink is needed.
+    """
+    height, width = gray.shape[:2]
+    scale = max(width, height) / float(max_image_size)
+    if scale <= 1.0:
+        return gray, 1.0, 1.0
+    new_w, new_h = max(1, round(width / scale)), max(1, round(height / scale))
+    small = cv2.resize(gray, (new_w, new_h), interpolation=cv2.INTER_AREA)
+    return small, width / new_w, height / new_h
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def workers_for_memory(max_image_size: int) -> int:
+    """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
+    Gaussian and DoG pyramids of the 2x-upsampled image, about 230 bytes per input pixel
+    (1.7 GB for a 3200 x 2400 image), plus the decoded full-size image."""
+    cores = (
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    )
+    available = available_memory()
+    if available is None:
+        return cores
+    per_worker = 230 * 0.75 * max_image_size**2 + 300e6
+    fits = max(1, int(0.8 * available // per_worker))
+    if fits < cores:
+        logger.info("extract: %d workers instead of %d, to fit in %.1f GB of memory", fits, cores,
+                    available / 1e9)  # fmt: skip
+    return min(cores, fits)

@@ -1,0 +1,272 @@
+"""The state of incremental SfM in flat arrays over track observations, and its geometry steps.
+
+Observation rows come from ``sfm.mapper.tracks`` (grouped by track).  Per row: image, keypoint, pixel,
+normalised coordinates (distortion removed with the current intrinsics) and whether the row is
+an inlier of its track's 3D point.  Per track: position and validity.  Per image: pose
+``cam_from_world`` and registration.  Every step (triangulation, filtering, BA assembly) is a
+vectorised operation on these arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from sfm.core.camera_models import project, unproject
+from sfm.mapper.bundle_adjuster import _TRIANGULATION_ROWS, BundleAdjustmentSteps, _gather
+from sfm.mapper.payload import MapperInput, MapperOptions
+from sfm.features.sift import localization_sigma
+from sfm.mapper.tracks import build_tracks, work_cuts
+from sfm.mapper.triangulation import depths, max_triangulation_angles, triangulate_dlt
+
+log = logging.getLogger(__name__)
+
+_ERROR_ROWS = 1_000_000  # reprojection errors computed this many rows at a time
+MAX_REG_TRIALS = 3  # failures after which a stalled model stops retrying an image (COLMAP's max_reg_trials)
+
+
+
+
+class MapperState(BundleAdjustmentSteps):
+    """Arrays and steps of one incremental reconstruction (see the module docstring; the
+    bundle adjustment and filtering steps are :class:`sfm.mapper.bundle_adjuster.BundleAdjustmentSteps`)."""
+
+    def __init__(self, payload: MapperInput, opts: MapperOptions) -> None:
+        self.payload, self.opts = payload, opts
+        self.names = payload.names
+        n = len(payload.names)
+        self.cam_keys = sorted(payload.cameras)
+        key_index = {c: k for k, c in enumerate(self.cam_keys)}
+        self.cam_index = np.array([key_index[c] for c in payload.camera_ids], dtype=np.int64)
+        self.priors = [payload.cameras[c] for c in self.cam_keys]
+        self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
+        self.pair_matches = {
+            (int(i), int(j)): (np.asarray(m), int(cfg))
+            for i, j, m, cfg in payload.pairs
+            if len(m) >= opts.min_num_matches
+        }
+        tracks = build_tracks([len(k) for k in payload.keypoints], ((i, j, m) for (i, j), (m, _) in self.pair_matches.items()))
+        self.starts = tracks.starts
+        self.obs_image, self.obs_kp = tracks.image, tracks.keypoint
+        self.obs_track = tracks.track_of_observation()
+        order = np.argsort(self.obs_image, kind="stable")
+        bounds = np.searchsorted(self.obs_image[order], np.arange(n + 1))
+        self.image_rows = [order[bounds[i] : bounds[i + 1]] for i in range(n)]
+        self.obs_px = np.zeros((len(self.obs_image), 2))
+        self.obs_sigma = np.ones(len(self.obs_image))  # pixel std of each row in BA
+        for i, rows in enumerate(self.image_rows):
+            if len(rows):
+                kp = np.asarray(payload.keypoints[i], dtype=np.float64)[self.obs_kp[rows]]
+                self.obs_px[rows] = kp[:, :2]
+                if opts.scale_weights and kp.shape[1] == 3:
+                    self.obs_sigma[rows] = localization_sigma(kp[:, 2])
+        self.obs_norm = np.zeros_like(self.obs_px)
+        self._update_normalised()
+        self.num_tracks = tracks.num_tracks
+        self.used = np.zeros(n, dtype=bool)  # belongs to a finished model
+        # de-register the images of cameras whose intrinsics became degenerate (off when no
+        # registration follows, as in the refinement of merged poses)
+        self.camera_filter = True
+        self._reset_model()
+        log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
+                  len(self.pair_matches), self.num_tracks, len(self.obs_image))
+
+    def release_pairs(self) -> None:
+        """Drop the verified matches once the tracks are built, for a caller that never picks
+        pairs again (the refinement of merged poses): at 4,000 images they are 0.3 GB."""
+        self.pair_matches = {}
+        self.payload = dataclasses.replace(self.payload, pairs=[])
+
+    # ------------------------------------------------------------------ bookkeeping
+    def _reset_model(self) -> None:
+        n = len(self.names)
+        self.registered = np.zeros(n, dtype=bool)
+        self.R = np.tile(np.eye(3), (n, 1, 1))
+        self.t = np.zeros((n, 3))
+        self.track_xyz = np.full((self.num_tracks, 3), np.nan)
+        self.track_valid = np.zeros(self.num_tracks, dtype=bool)
+        self.obs_inlier = np.zeros(len(self.obs_image), dtype=bool)
+        self.num_registered = 0
+        self.last_registered = -1
+        # registration failures of this model: count and points seen at the last one (PnP),
+        # points seen when structure-less registration last failed
+        self.failed = np.zeros(n, dtype=np.int64)
+        self.fail_visible = np.zeros(n, dtype=np.int64)
+        self.structureless_failed: dict[int, int] = {}
+        self.last_ba_rms = float("nan")
+        self.last_ba_decrease = 0.0  # the relative cost decrease of the last BA's last iteration
+        self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
+        self._update_normalised()
+
+    def apply_params(self) -> None:
+        """Recompute normalised coordinates after the intrinsics were set from outside."""
+        self._update_normalised()
+
+    def close_model(self) -> None:
+        self.used |= self.registered
+        self._reset_model()
+
+    def _update_normalised(self) -> None:
+        cams = self.cam_index[self.obs_image]
+        for c, prior in enumerate(self.priors):
+            rows = np.flatnonzero(cams == c)
+            if len(rows):
+                self.obs_norm[rows] = unproject(prior.model, self.params[c], self.obs_px[rows])
+
+    def camera_of(self, i: int):
+        return self.priors[self.cam_index[i]]
+
+    def focal(self, i: int) -> float:
+        return self._camera_focal(self.cam_index[i])
+
+    def _camera_focal(self, c: int) -> float:
+        spec_focal = self.params[c][[0, 1]] if self.priors[c].model in ("PINHOLE", "OPENCV") else self.params[c][[0]]
+        return float(np.mean(spec_focal))
+
+    def norm_of(self, i: int, keypoints: np.ndarray) -> np.ndarray:
+        prior = self.camera_of(i)
+        kp = np.asarray(self.payload.keypoints[i], dtype=np.float64)[keypoints, :2]
+        return unproject(prior.model, self.params[self.cam_index[i]], kp)
+
+    def centers(self, images: np.ndarray) -> np.ndarray:
+        return -np.einsum("nji,nj->ni", self.R[images], self.t[images])
+
+    def reprojection_errors(self, rows: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """Pixel error of each row against the point ``xyz`` (per row); inf behind the camera.
+        Computed ``_ERROR_ROWS`` rows at a time (a rotation per row is 72 bytes)."""
+        if len(rows) > _ERROR_ROWS:
+            return np.concatenate([self.reprojection_errors(rows[a : a + _ERROR_ROWS], xyz[a : a + _ERROR_ROWS])
+                                   for a in range(0, len(rows), _ERROR_ROWS)])
+        img = self.obs_image[rows]
+        x_cam = np.einsum("nij,nj->ni", self.R[img], xyz) + self.t[img]
+        err = np.full(len(rows), np.inf)
+        cams = self.cam_index[img]
+        for c in np.unique(cams):
+            sel = np.flatnonzero(cams == c)
+            px = project(self.priors[c].model, self.params[c], x_cam[sel])
+            err[sel] = np.linalg.norm(px - self.obs_px[rows[sel]], axis=1)
+        err[~np.isfinite(err) | (x_cam[:, 2] <= 0)] = np.inf
+        return err
+
+    # ------------------------------------------------------------------ initial pair
+    def start_model(self, i: int, j: int, R: np.ndarray, t: np.ndarray) -> None:
+        self.R[i], self.t[i] = np.eye(3), np.zeros(3)
+        self.R[j], self.t[j] = R, t
+        self.registered[[i, j]] = True
+        self.num_registered = 2
+        self.last_registered = j
+        self.triangulate_new(j)
+        log.info("%s: initial pair %s - %s, %d points", self.payload.label, self.names[i], self.names[j], int(self.track_valid.sum()))
+        self.global_ba()
+
+    # ------------------------------------------------------------------ registration
+    def next_image_candidates(self, stalled: bool = False) -> list[int]:
+        """Unregistered images ordered by how many triangulated points they see and how well
+        spread those are (distinct cells of a 16 x 16 grid), retrying failed ones only once
+        they see 20% more points than at their last failure.  With ``stalled``, the failed
+        images that see any more points, while they failed fewer than ``MAX_REG_TRIALS``
+        times, follow in the same order: what to try when nothing else registers, from the
+        same pass over the images."""
+        ready, retry = [], []
+        for i in np.flatnonzero(~self.registered & ~self.used):
+            vis, _ = self.visible_points(i)
+            if len(vis) < self.opts.abs_pose_min_num_inliers:
+                continue
+            queue = ready
+            if self.failed[i] and len(vis) <= 1.2 * self.fail_visible[i]:
+                if not (stalled and self.failed[i] < MAX_REG_TRIALS and len(vis) > self.fail_visible[i]):
+                    continue
+                queue = retry
+            prior = self.camera_of(i)
+            cells = np.unique((self.obs_px[vis] // [prior.width / 16, prior.height / 16]) @ [1, 16])
+            queue.append((-len(cells), -len(vis), int(i)))
+        return [i for _, _, i in sorted(ready) + sorted(retry)]
+
+    def visible_points(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = self.image_rows[i]
+        rows = rows[self.track_valid[self.obs_track[rows]] & np.isfinite(self.obs_norm[rows]).all(axis=1)]
+        return rows, self.track_xyz[self.obs_track[rows]]
+
+    def note_failure(self, i: int, visible: int) -> None:
+        self.failed[i] += 1
+        self.fail_visible[i] = visible
+
+    def register(self, i: int, R: np.ndarray, t: np.ndarray) -> None:
+        self.R[i], self.t[i] = R, t
+        self.registered[i] = True
+        self.num_registered += 1
+        self.last_registered = i
+        rows, X = self.visible_points(i)
+        self.obs_inlier[rows] = self.reprojection_errors(rows, X) < self.opts.max_reproj_error
+
+    # ------------------------------------------------------------------ triangulation
+    def _triangulate_tracks(self, tracks: np.ndarray) -> int:
+        """(Re)triangulate tracks from their rows in registered images; a row is kept if it
+        reprojects within ``max_reproj_error`` in front of the camera, a point if it keeps two
+        rows and a triangulation angle >= ``min_tri_angle``.  Two passes: all rows, then the
+        inliers of the first pass.  Returns the number of new valid points."""
+        lengths = self.starts[tracks + 1] - self.starts[tracks]
+        cuts = work_cuts(np.cumsum(lengths), _TRIANGULATION_ROWS)  # chunks: bounded temporaries
+        return sum(self._triangulate_chunk(tracks[a:b]) for a, b in zip(cuts[:-1], cuts[1:]))
+
+    def _triangulate_chunk(self, tracks: np.ndarray) -> int:
+        rows, owner = _gather(self.starts, tracks)
+        # rows of registered images; not those a degenerate camera cannot unproject
+        keep = self.registered[self.obs_image[rows]] & np.isfinite(self.obs_norm[rows]).all(axis=1)
+        rows, owner = rows[keep], owner[keep]
+        accepted = np.zeros(len(tracks), dtype=bool)
+        xyz_out = np.full((len(tracks), 3), np.nan)
+        for _ in range(2):  # rows stay grouped by owner (ascending) through every mask below
+            counts = np.bincount(owner, minlength=len(tracks))
+            sel = np.flatnonzero(counts >= 2)
+            if len(sel) == 0:
+                break
+            mask = counts[owner] >= 2
+            r = rows[mask]
+            starts = np.concatenate([[0], np.cumsum(counts[sel])])
+            img = self.obs_image[r]
+            X = triangulate_dlt(self.R[img], self.t[img], self.obs_norm[r], starts)
+            xyz_rows = np.repeat(X, np.diff(starts), axis=0)
+            err = self.reprojection_errors(r, xyz_rows)
+            ok = (err < self.opts.max_reproj_error) & (depths(self.R[img], self.t[img], xyz_rows) > 0)
+            n_ok = np.add.reduceat(ok.astype(np.int64), starts[:-1])
+            angles = max_triangulation_angles(self.centers(img), X, starts)
+            good = (n_ok == np.diff(starts)) & (angles >= self.opts.min_tri_angle) & np.all(np.isfinite(X), axis=1)
+            accepted[sel[good]] = True
+            xyz_out[sel[good]] = X[good]
+            # Second pass: the tracks that failed, from the rows that agreed with them.
+            retry_rows = np.repeat(~good & (n_ok >= 2), np.diff(starts)) & ok
+            rows, owner = r[retry_rows], owner[mask][retry_rows]
+            if len(rows) == 0:
+                break
+        # Apply results.
+        new = tracks[accepted]
+        self.track_xyz[new] = xyz_out[accepted]
+        self.track_valid[new] = True
+        rows_all, _ = _gather(self.starts, new)
+        on = self.registered[self.obs_image[rows_all]]
+        rows_all = rows_all[on]
+        err = self.reprojection_errors(rows_all, self.track_xyz[self.obs_track[rows_all]])
+        self.obs_inlier[rows_all] = err < self.opts.max_reproj_error
+        return int(accepted.sum())
+
+    def triangulate_new(self, i: int) -> int:
+        rows = self.image_rows[i]
+        tracks = np.unique(self.obs_track[rows])
+        return self._triangulate_tracks(tracks[~self.track_valid[tracks]])
+
+    def retriangulate(self) -> int:
+        """Triangulate tracks that failed before, and re-admit rows of valid tracks that now
+        reproject well (the model moved)."""
+        reg_rows = np.flatnonzero(self.registered[self.obs_image])
+        tr = self.obs_track[reg_rows]
+        counts = np.bincount(tr, minlength=self.num_tracks)
+        open_tracks = np.flatnonzero((counts >= 2) & ~self.track_valid)
+        added = self._triangulate_tracks(open_tracks)
+        cand = reg_rows[self.track_valid[tr] & ~self.obs_inlier[reg_rows]]
+        if len(cand):
+            err = self.reprojection_errors(cand, self.track_xyz[self.obs_track[cand]])
+            self.obs_inlier[cand[err < self.opts.max_reproj_error]] = True
+        return added

@@ -1,0 +1,1 @@
+"""sfm.stages.match."""

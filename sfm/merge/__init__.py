@@ -1,0 +1,1 @@
+"""sfm.merge.cluster_graph."""
