@@ -17,41 +17,17 @@ distortion (k1 r2 + k2 r2² on normalised coordinates) is BAL's exactly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from backend.ba_problem import BAProblem
+
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0])
 
 
-@dataclass(frozen=True)
-class BALProblem:
-    """A BAL problem in the array interface of :func:`backend.bundle_adjustment.bundle_adjust`.
-
-    camera_models: ("RADIAL",) * N; camera_params (N, 5): f, cx, cy, k1, k2 (cx = cy = 0, so
-    pixels are relative to the image centre, y down); image_camera (N,) = arange(N);
-    rotations (N,3,3) and translations (N,3): cam_from_world in OpenCV axes; points (P,3);
-    obs_image (M,), obs_point (M,), obs_xy (M,2).
-    """
-
-    camera_models: tuple[str, ...]
-    camera_params: np.ndarray
-    image_camera: np.ndarray
-    rotations: np.ndarray
-    translations: np.ndarray
-    points: np.ndarray
-    obs_image: np.ndarray
-    obs_point: np.ndarray
-    obs_xy: np.ndarray
-
-    def arrays(self) -> dict:
-        """The fields as keyword arguments for ``bundle_adjust`` / ``reprojection_errors``."""
-        return {name: getattr(self, name) for name in self.__dataclass_fields__}
-
-
-def read_bal(path: str | Path) -> BALProblem:
+def read_bal(path: str | Path) -> BAProblem:
     """Read a BAL file (see the module docstring for the conversion to OpenCV conventions)."""
     tokens = Path(path).read_text().split()
     num_cams, num_points, num_obs = (int(tok) for tok in tokens[:3])
@@ -72,7 +48,7 @@ def read_bal(path: str | Path) -> BALProblem:
     translations = cams[:, 3:6] @ _FLIP_YZ
     zeros = np.zeros(num_cams)
     camera_params = np.stack([cams[:, 6], zeros, zeros, cams[:, 7], cams[:, 8]], axis=1)
-    return BALProblem(
+    return BAProblem(
         camera_models=("RADIAL",) * num_cams,
         camera_params=camera_params,
         image_camera=np.arange(num_cams),

@@ -1,15 +1,13 @@
 """Bundle adjustment as a GTSAM factor graph, behind an array interface.
 
-The local and global BA of the pipeline (DESIGN.md, algorithm steps 6 and 8; the paper's final
-bundle adjustment after merging, section 3 overview); pose-only refinement is
-:mod:`backend.pose_refinement`.
+The local and global BAs of incremental SfM and the final bundle adjustment after merging
+(paper section 3, Figure 1).  :func:`bundle_adjust` takes a :class:`backend.ba_problem.BAProblem`
+and :class:`backend.ba_problem.BAOptions` and returns a :class:`backend.ba_problem.BAResult`.
 
-Conventions (DESIGN.md): poses are ``cam_from_world`` (x_cam = R X + t, OpenCV axes: x right,
-y down, z forward); GTSAM's ``Pose3`` of a camera is ``world_from_cam`` and is converted only by
-:func:`pose3_from_cam_from_world` and :func:`cam_from_world_from_pose3`. Intrinsics (COLMAP
-models per camera group), observations (image index (M,), point index (M,), pixel (M, 2)) and
-the numpy projection and reprojection errors are those of :mod:`backend.camera_projection`,
-re-exported here.
+Conventions: poses are ``cam_from_world`` (x_cam = R X + t, OpenCV axes: x right, y down, z
+forward); GTSAM's ``Pose3`` of a camera is ``world_from_cam`` and is converted only by
+:func:`pose3_from_cam_from_world` and :func:`cam_from_world_from_pose3`. Intrinsics are COLMAP
+models per camera group, projected as :mod:`backend.camera_projection` does.
 
 Factors: with intrinsics held fixed, ``GenericProjectionFactorCal3DS2`` (pose and point
 variables; Cal3DS2 reproduces every supported model exactly), and ``TriangulationFactorCal3DS2``
@@ -21,8 +19,8 @@ calibration that must not move are held by a tight prior (sigma 1e-7 relative) a
 exactly as given; fx = fy of single-focal models under "all" is tied by a one-row factor.
 (GTSAM 4.3 gotcha: Python's ``Cal3Bundler.uncalibrate`` binds Cal3f's and skips distortion;
 the C++ factors and ``PinholeCameraCal3Bundler.project`` apply k1 r2 + k2 r2² correctly.)
-Factors are added in a Python loop (~3 µs each; GTSAM has no bulk constructor for them): about
-0.4 s of a 100k-observation BA, whose time goes to GTSAM's linearisation and elimination.
+Factors are added in a Python loop (GTSAM's Python API has no bulk constructor for them); the
+time goes to GTSAM's linearisation and elimination.
 The robust noise and the Levenberg-Marquardt runs are :mod:`backend.gtsam_solver`'s.
 """
 
@@ -30,21 +28,12 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass
-
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
-from backend.camera_projection import (  # noqa: F401  (re-exported: the BA's camera model)
-    MODEL_NUM_PARAMS,
-    SINGLE_FOCAL_MODELS,
-    ds2_from_params,
-    params_from_ds2,
-    project,
-    reprojection_errors,
-)
+from backend.ba_problem import BAOptions, BAProblem, BAResult
+from backend.camera_projection import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2, reprojection_errors
 from backend.gtsam_solver import gauss_newton_or_lm, lm_optimizer, optimize_or_keep, robust_noise
 
 logger = logging.getLogger(__name__)
@@ -61,89 +50,6 @@ _EXTRA_DS2 = {
 HOLD_SIGMA = 1e-7  # relative sigma of the priors that hold parameters and the gauge pose
 _TIE_SIGMA = 1e-6  # relative sigma of fx - fy = 0 (tighter makes LM stall)
 _SCALE_SIGMA = 1e-4  # relative sigma of the scale prior: a pure gauge, so its weight is moot
-
-
-@dataclass(frozen=True)
-class BAOptions:
-    """Options of :func:`bundle_adjust`.
-
-    loss, loss_scale: robust loss on each observation's pixel error, "huber" (default),
-        "cauchy" or "none", with its scale in pixels (default 1.0; times the observation's
-        sigma when ``bundle_adjust`` is given sigmas). Huber at 1 px is the GTSAM
-        analogue of COLMAP's local-BA soft-L1 at scale 1: quadratic core, linear tails, convex
-        (so no new local minima), yet a 50 px outlier pulls 50x less than under least squares.
-        "none" is COLMAP's global-BA default, right when outliers were already filtered.
-    fixed_poses: image indices whose poses are held (returned exactly as given).
-    refine_intrinsics: "none" | "focal" | "focal_radial" (focal + the model's distortion, the
-        default, as COLMAP) | "all" (principal point too).
-    gauge_pose: image whose pose anchors the gauge when ``fixed_poses`` is empty (None: the
-        first image with observations). Gauge: with no fixed pose, a prior on that pose plus a
-        prior on the distance from its centre to the farthest camera centre (the scale); with
-        one fixed pose, only that distance prior; with two or more, none (they fix all 7 dof).
-    max_iterations, relative_tolerance, absolute_tolerance: Levenberg-Marquardt stopping rules
-        (tolerances on the decrease of the total cost 0.5 * sum rho(err²); 1e-5 is GTSAM's
-        default: robust losses converge linearly in the tail, where tighter tolerances buy
-        hundredths of a pixel for tens of iterations).
-    ordering: "auto" (default: "points_first" up to ``backend.gtsam_solver.AUTO_METIS_OBSERVATIONS`` observations,
-        "metis" above), "points_first" (every point, then calibrations and poses, the Schur
-        ordering of BA; ~20% faster than METIS on a 100-image problem and no partitioning
-        cost), "metis" or "colamd".  Points first keeps, for every point, a dense Hessian
-        block over all cameras that see it until the cameras are eliminated: about 5 KB per
-        observation (3.0 GB peak on a 500-image, 608k-observation problem, against 0.94 GB
-        and 1.5x less time with METIS's nested dissection).  (GTSAM 4.3's Schur-mode
-        SfmLevenbergMarquardtOptimizer was 1.7-1.8x slower on 100- and 400-image problems.)
-    optimizer: "lm" (Levenberg-Marquardt, default) or "gauss_newton_or_lm" (Gauss-Newton while
-        every step lowers the cost, else LM from the start: a third less time per iteration
-        from a good start, ``backend.gtsam_solver.gauss_newton_or_lm``).
-    predictive_stop: also stop once the last two iterations' relative decreases shrink so fast
-        that the rest of the series (geometric: ``d_k r / (1 - r)``, ``r = d_k / d_(k-1)``) is
-        below ``relative_tolerance`` (``backend.gtsam_solver.predicted_rest``): the iteration
-        that would only confirm convergence is skipped.  Meant for BAs that later BAs refine
-        again; a slow, steady creep (``r`` near 1) is never cut short.
-    verbose: log every LM iteration at INFO (otherwise DEBUG).
-    """
-
-    loss: str = "huber"
-    loss_scale: float = 1.0
-    fixed_poses: tuple[int, ...] = ()
-    refine_intrinsics: str = "focal_radial"
-    gauge_pose: int | None = None
-    max_iterations: int = 100
-    relative_tolerance: float = 1e-5
-    absolute_tolerance: float = 1e-6
-    ordering: str = "auto"
-    optimizer: str = "lm"
-    predictive_stop: bool = False
-    verbose: bool = False
-
-
-@dataclass(frozen=True)
-class BAResult:
-    """Result of :func:`bundle_adjust`; errors are pixel distances from :func:`reprojection_errors`.
-
-    rotations (N,3,3), translations (N,3): optimised cam_from_world poses; points (P,3);
-    camera_params: one parameter vector per camera group (the input model's layout);
-    initial_rms / final_rms: RMS reprojection error over all observations; final_mean_error;
-    iterations; time_s (graph building + optimisation); num_observations;
-    success: the optimiser ran and did not increase the cost; converged: it stopped before
-    max_iterations; last_decrease: the relative cost decrease of its last iteration (0 when it
-    made none; the largest over the parts of a partitioned BA), which says how far from the
-    optimum a loose ``relative_tolerance`` stopped it.
-    """
-
-    rotations: np.ndarray
-    translations: np.ndarray
-    points: np.ndarray
-    camera_params: tuple[np.ndarray, ...]
-    initial_rms: float
-    final_rms: float
-    final_mean_error: float
-    iterations: int
-    time_s: float
-    num_observations: int
-    success: bool
-    converged: bool
-    last_decrease: float = 0.0
 
 
 def pose3_from_cam_from_world(rotation: np.ndarray, translation: np.ndarray) -> gtsam.Pose3:
@@ -265,7 +171,7 @@ def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, re
 
 
 def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions, held: list[int]) -> None:
-    """Priors on the ``held`` poses (the observed ones of ``options.fixed_poses``), and the
+    """Priors on the ``held`` poses (the observed ones of ``BAProblem.fixed_poses``), and the
     gauge (anchor pose and scale), see :class:`BAOptions`."""
     centres = np.array([pose.translation() for pose in poses])[observed]
     spread = np.median(np.linalg.norm(centres - centres.mean(0), axis=1))
@@ -287,30 +193,16 @@ def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions, 
         graph.add(gtsam.RangeFactorPose3(X(anchors[0]), X(far), d, range_noise))
 
 
-def bundle_adjust(
-    camera_models: Sequence[str],
-    camera_params: Sequence[Array],
-    image_camera: Array,
-    rotations: Array,
-    translations: Array,
-    points: Array,
-    obs_image: Array,
-    obs_point: Array,
-    obs_xy: Array,
-    options: BAOptions = BAOptions(),
-    obs_sigma: Array | None = None,
-) -> BAResult:
+def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BAResult:
     """Jointly refine poses, points and (optionally) per-group intrinsics (robust LM, GTSAM).
 
-    ``camera_models`` (G,) names and ``camera_params`` (G,) vectors per group; ``image_camera``
-    (N,) group of each image; ``rotations`` (N,3,3) and ``translations`` (N,3) cam_from_world;
-    ``points`` (P,3); observations ``obs_image`` (M,), ``obs_point`` (M,), ``obs_xy`` (M,2).
-    ``obs_sigma`` (M,): each observation's standard deviation in pixels (None: 1 px each); the
-    robust loss acts on the whitened error, so an observation's loss scale is
-    ``options.loss_scale`` times its sigma.  Errors reported stay in pixels.
-    Images, points and groups without observations are returned unchanged.
+    Images, points and groups without observations are returned unchanged, and so are the
+    poses in ``problem.fixed_poses``.  Errors reported are in pixels.
     """
     start = time.perf_counter()
+    camera_models, camera_params, image_camera = problem.camera_models, problem.camera_params, problem.image_camera
+    rotations, translations, points = problem.rotations, problem.translations, problem.points
+    obs_image, obs_point, obs_xy, obs_sigma = problem.obs_image, problem.obs_point, problem.obs_xy, problem.obs_sigma
     if len(obs_image) == 0:
         raise ValueError("bundle adjustment needs at least one observation")
     rotations, translations = np.asarray(rotations, float), np.asarray(translations, float)
@@ -326,7 +218,7 @@ def bundle_adjust(
     # Held poses are constants when two or more are observed and the intrinsics are held too
     # (a local BA): they fix the gauge, and the reduced camera system holds the free poses
     # alone.  Otherwise they are variables under tight priors (_add_gauge).
-    held = sorted(set(options.fixed_poses) & set(observed.tolist()))
+    held = sorted(set(problem.fixed_poses) & set(observed.tolist()))
     constant = {i: poses[i] for i in held} if refine == "none" and len(held) >= 2 else {}
     for i in observed.tolist():
         if i not in constant:
@@ -352,7 +244,7 @@ def bundle_adjust(
         raise ValueError(f"unknown optimizer {options.optimizer!r}; use 'lm' or 'gauss_newton_or_lm'")
     success = success and graph.error(result) <= graph.error(values)
     rot_out, trans_out, pts_out = rotations.copy(), translations.copy(), points.copy()
-    for i in set(observed.tolist()) - set(options.fixed_poses):
+    for i in set(observed.tolist()) - set(problem.fixed_poses):
         rot_out[i], trans_out[i] = cam_from_world_from_pose3(result.atPose3(X(i)))
     for j in seen_points.tolist():
         pts_out[j] = result.atPoint3(L(j))

@@ -5,7 +5,7 @@ noise (Huber, Cauchy or none on an isotropic 1 px sigma), the optimiser with its
 ordering ("points_first": every point eliminated first, the Schur ordering of BA; GTSAM's
 METIS / COLAMD; "auto": points first for small problems, METIS for large ones), stopping rules and an iteration log, and running it with GTSAM's stdout
 chatter sent to the debug log and a GTSAM error (e.g. an indeterminant system) turned into
-"keep the input values". The options are those of :class:`backend.bundle_adjustment.BAOptions`.
+"keep the input values". The options are those of :class:`backend.ba_problem.BAOptions`.
 """
 
 from __future__ import annotations
@@ -15,13 +15,10 @@ import logging
 import os
 import sys
 import tempfile
-from typing import TYPE_CHECKING
-
 import gtsam
 import numpy as np
 
-if TYPE_CHECKING:
-    from backend.bundle_adjustment import BAOptions
+from backend.ba_problem import BAOptions
 
 # The messages are bundle adjustment's: they keep its logger name (and its log configuration).
 logger = logging.getLogger("backend.bundle_adjustment")

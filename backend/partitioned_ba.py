@@ -54,7 +54,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from backend.bundle_adjustment import BAOptions, BAResult, bundle_adjust, reprojection_errors
+from backend.ba_problem import BAOptions, BAProblem, BAResult
+from backend.bundle_adjustment import bundle_adjust
+from backend.camera_projection import reprojection_errors
 from backend.memory import return_freed_memory
 
 logger = logging.getLogger(__name__)
@@ -69,26 +71,22 @@ def _chordal_mean(rotations: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotations, translations, points,
-                              obs_image, obs_point, obs_xy, num_parts: int, options: BAOptions = BAOptions(),
-                              seed: int = 0, obs_sigma: np.ndarray | None = None) -> BAResult:
+def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOptions = BAOptions(),
+                              seed: int = 0) -> BAResult:
     """:func:`backend.bundle_adjustment.bundle_adjust` over ``num_parts`` random disjoint parts
-    of the points, averaged (see the module docstring); same arguments and result layout.
-    Images seen by no part and the poses in ``options.fixed_poses`` are returned as given;
-    ``obs_sigma`` as in ``bundle_adjust``."""
+    of the points, averaged (see the module docstring); same result layout.  Images seen by no
+    part and the poses in ``problem.fixed_poses`` are returned as given."""
     start = time.perf_counter()
-    obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
-    rotations, translations = np.asarray(rotations, float), np.asarray(translations, float)
-    points, obs_xy, image_camera = np.asarray(points, float), np.asarray(obs_xy, float), np.asarray(image_camera)
-    if obs_sigma is not None and np.shape(obs_sigma) != obs_image.shape:
-        raise ValueError(f"obs_sigma must hold {len(obs_image)} values, one per observation")
     if num_parts <= 1:
-        return bundle_adjust(camera_models, camera_params, image_camera, rotations, translations, points,
-                             obs_image, obs_point, obs_xy, options, obs_sigma)
+        return bundle_adjust(problem, options)
+    obs_image, obs_point = np.asarray(problem.obs_image, np.int64), np.asarray(problem.obs_point, np.int64)
+    rotations, translations = np.asarray(problem.rotations, float), np.asarray(problem.translations, float)
+    points, obs_xy = np.asarray(problem.points, float), np.asarray(problem.obs_xy, float)
+    image_camera, camera_models, camera_params = np.asarray(problem.image_camera), problem.camera_models, problem.camera_params
     seen = np.unique(obs_point)
     part_of_point = np.full(len(points), -1)
     part_of_point[np.random.default_rng(seed).permutation(seen)] = np.arange(len(seen)) % num_parts
-    if not options.fixed_poses and options.gauge_pose is None:  # one anchor for every part
+    if not problem.fixed_poses and options.gauge_pose is None:  # one anchor for every part
         options = replace(options, gauge_pose=int(np.argmax(np.bincount(obs_image))))
     n = len(rotations)
     rot_sum, centre_sum, count = np.zeros((n, 3, 3)), np.zeros((n, 3)), np.zeros(n)
@@ -98,9 +96,7 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
     last_decrease = 0.0
     for k in range(num_parts):
         mask = part_of_point[obs_point] == k
-        res = bundle_adjust(camera_models, camera_params, image_camera, rotations, translations, points,
-                            obs_image[mask], obs_point[mask], obs_xy[mask], options,
-                            None if obs_sigma is None else np.asarray(obs_sigma)[mask])
+        res = bundle_adjust(problem.observations(mask), options)
         observed = np.zeros(n, dtype=bool)
         observed[obs_image[mask]] = True
         rot_sum[observed] += res.rotations[observed]
@@ -122,7 +118,7 @@ def bundle_adjust_partitioned(camera_models, camera_params, image_camera, rotati
         del res
         return_freed_memory()  # GTSAM's freed graph back to the system before the next part
     rot_out, trans_out = rotations.copy(), translations.copy()
-    moved = (count > 0) & ~np.isin(np.arange(n), options.fixed_poses)
+    moved = (count > 0) & ~np.isin(np.arange(n), problem.fixed_poses)
     for i in np.flatnonzero(moved):
         rot_out[i] = _chordal_mean(rot_sum[i][None] / count[i])
         trans_out[i] = -rot_out[i] @ (centre_sum[i] / count[i])

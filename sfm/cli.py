@@ -1,27 +1,45 @@
 """``graphsfm`` command line: parses arguments and calls one stage function per command.
 
-Commands only parse arguments and call ``run_*`` functions; errors reach the user as one line
-on stderr with the exit code of ``sfm.errors`` (details go to ``WORK/log.txt`` when a workspace
-is known).
+Commands only parse arguments and call the ``run_*`` functions of ``sfm.stages``.  Every option
+flag is made from a field of an options dataclass (``sfm.core.options``): ``--max-cluster-size``
+is ``ClusterOptions.max_cluster_size``, with the same help, default and allowed values, and the
+dataclass checks the values before any stage runs.  Paths (``--workspace``, ``--images``, a
+model folder, an output) are the commands' arguments.  Errors reach the user as one line on
+stderr with the exit code of ``sfm.errors`` (details go to ``WORK/log.txt`` when a workspace is
+known).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
 import traceback
+import typing
 from pathlib import Path
 
-from sfm.stages.cluster import ClusterOptions
+from sfm.clustering.options import ClusterOptions
+from sfm.core.options import OptionError, base_type, option_fields
 from sfm.errors import GraphsfmError, InputError
-from sfm.mapper.payload import MapperOptions
-from sfm.core.options import add_options, options_from_args
-from sfm.synthetic.rendered import RenderOptions
-from sfm.synthetic.scenes import SynthOptions
+from sfm.evaluation.options import EvaluateOptions
+from sfm.execution.options import ExecutionOptions, make_executor
+from sfm.features.options import ExtractOptions
+from sfm.io.options import ExportOptions
+from sfm.mapper.options import MapperOptions
+from sfm.matching.options import MatchOptions
+from sfm.merge.options import MergeOptions
+from sfm.synthetic.options import DemoOptions, SynthOptions
+from sfm.viz.options import RecordingOptions
 
 log = logging.getLogger("sfm")
+
+# The mapper's options that the refinement after merging reads (``graphsfm merge``); the others
+# steer registration, which merging does not do.
+MERGE_MAPPER_OPTIONS = ("min_num_matches", "max_reproj_error", "min_tri_angle", "intrinsics_refinement",
+                        "refine_given_intrinsics", "loss", "loss_scale", "scale_weights", "ba_max_observations",
+                        "min_model_size", "seed")
 
 
 def _rounded(obj, digits: int = 10):
@@ -53,315 +71,267 @@ def _setup_logging(workspace: Path | None, verbose: bool) -> None:
         root.addHandler(handler)
 
 
-# ------------------------------------------------------------------------------- commands
-def cmd_synth(args: argparse.Namespace) -> int:
+# ------------------------------------------------------------------------------- options <-> flags
+def flag_of(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def add_options(parser: argparse.ArgumentParser, cls: type, only: tuple[str, ...] | None = None) -> None:
+    """One ``--flag`` per field of the options dataclass ``cls`` (``only``: these fields), with the
+    field's type, choices, help and default.  A flag another dataclass already added (``--seed``)
+    is shared: its value goes to every dataclass that has the field."""
+    hints = typing.get_type_hints(cls)
+    group = parser.add_argument_group(cls.__name__)
+    for f in option_fields(cls):
+        flag = flag_of(f.name)
+        if (only is not None and f.name not in only) or flag in parser._option_string_actions:
+            continue
+        kind, help_text = base_type(hints[f.name]), f.metadata["help"].replace("%", "%%")
+        if kind is bool:
+            group.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=f.default,
+                               help=help_text)
+            continue
+        choices = f.metadata.get("choices")
+        default = "see help" if f.default is None else f.default
+        group.add_argument(flag, dest=f.name, type=str if kind is Path else kind, default=f.default, choices=choices,
+                           metavar=None if choices else f.name.upper(), help=f"{help_text} (default: {default})")
+
+
+def options_of(cls: type, args: argparse.Namespace):
+    """The dataclass ``cls`` from the parsed flags that belong to it; a value it refuses is a
+    bad argument (exit code 2) naming the flag."""
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
+    try:
+        return cls(**values)
+    except OptionError as exc:
+        raise InputError(f"{flag_of(exc.field)}: {exc.message}") from exc
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+
+
+def _reconstruct_options(args: argparse.Namespace):
+    from sfm.stages.reconstruct import ReconstructOptions
+
+    return ReconstructOptions(
+        extract=options_of(ExtractOptions, args), match=options_of(MatchOptions, args),
+        cluster=options_of(ClusterOptions, args), mapper=options_of(MapperOptions, args),
+        merge=options_of(MergeOptions, args), execution=options_of(ExecutionOptions, args),
+        recording=options_of(RecordingOptions, args))
+
+
+def _recorder(args: argparse.Namespace, stage: str):
+    from sfm.viz.recorder import Recorder
+
+    rec = options_of(RecordingOptions, args)
+    if not rec.recording:
+        return Recorder.disabled()
     workspace = Path(args.workspace)
-    if args.scene == "rendered":
-        opts = RenderOptions(num_images=args.num_images, seed=args.seed)
-        from sfm.synthetic.rendered import write_rendered_scene
+    return Recorder(workspace / f"recording-{stage}.rrd", workspace=workspace, spawn=rec.spawn)
 
-        summary = write_rendered_scene(workspace, opts)
-    else:
-        from sfm.synthetic.scenes import run_synth
 
-        opts = options_from_args(SynthOptions, args)
-        try:
-            summary = run_synth(workspace, opts)
-        except FileExistsError as exc:
-            raise InputError(str(exc)) from exc
-    print(json.dumps(summary, indent=2))
+def _print(obj) -> None:
+    print(json.dumps(_rounded(obj, 6), indent=2, default=str))
+
+
+def _image_dir(images: str) -> Path:
+    path = Path(images)
+    if not path.is_dir():
+        raise InputError(f"image folder not found: {images}")
+    return path
+
+
+# ------------------------------------------------------------------------------- commands
+def cmd_extract(args: argparse.Namespace) -> int:
+    from sfm.stages.extract import run_extract
+    from sfm.viz.frontend import log_images
+
+    images = _image_dir(args.images)
+    options = options_of(ExtractOptions, args)
+    with make_executor(options_of(ExecutionOptions, args)) as executor:
+        result = run_extract(images, Path(args.workspace), options, executor)
+    with _recorder(args, "extract") as recorder:
+        log_images(recorder, images, Path(args.workspace))
+    _print(dataclasses.asdict(result))
+    return 0
+
+
+def cmd_match(args: argparse.Namespace) -> int:
+    from sfm.stages.match import run_match
+    from sfm.viz.frontend import log_verified_graph
+
+    options = options_of(MatchOptions, args)
+    with make_executor(options_of(ExecutionOptions, args)) as executor:
+        result = run_match(Path(args.workspace), options, executor)
+    with _recorder(args, "match") as recorder:
+        log_verified_graph(recorder, Path(args.workspace))
+    _print(dataclasses.asdict(result))
+    return 0
+
+
+def cmd_cluster(args: argparse.Namespace) -> int:
+    from sfm.stages.cluster import run_cluster
+
+    options = options_of(ClusterOptions, args)
+    with _recorder(args, "cluster") as recorder:
+        result = run_cluster(Path(args.workspace), options, recorder)
+    _print(dataclasses.asdict(result))
+    return 0
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from sfm.stages.map import run_map
+
+    options = options_of(MapperOptions, args)
+    with _recorder(args, "map") as recorder, make_executor(options_of(ExecutionOptions, args)) as executor:
+        result = run_map(Path(args.workspace), options, recorder, executor)
+    _print({"clusters": result.num_clusters, "models": result.models})
+    return 0
+
+
+def cmd_merge(args: argparse.Namespace) -> int:
+    from sfm.stages.merge import run_merge
+
+    mapper, merge = options_of(MapperOptions, args), options_of(MergeOptions, args)
+    with _recorder(args, "merge") as recorder:
+        result = run_merge(Path(args.workspace), mapper, merge, recorder)
+    _print(dataclasses.asdict(result))
+    return 0
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from sfm.stages.reconstruct import reconstruct
+
+    images = _image_dir(args.images) if args.images is not None else None
+    report = reconstruct(images, Path(args.workspace), _reconstruct_options(args))
+    _print({k: report.get(k) for k in ("images", "registered", "points", "mean_track_length",
+            "mean_reprojection_error", "num_clusters", "num_models", "times", "warnings") if k in report})
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from sfm.stages.demo import run_demo
+
+    summary = run_demo(Path(args.workspace), options_of(DemoOptions, args), _reconstruct_options(args))
+    print(json.dumps(_rounded(summary, 4), indent=2))
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from sfm.evaluation.ground_truth import gt_from_reconstruction, read_gt_table
+    from sfm.evaluation.metrics import evaluate
     from sfm.io.colmap_model import read_model
-    from sfm.evaluation.metrics import evaluate, gt_from_reconstruction, read_gt_table
 
-    model = Path(args.model)
-    gt_path = Path(args.gt)
+    options = options_of(EvaluateOptions, args)
+    model, gt_path = Path(args.model), Path(args.gt)
     if not model.exists():
         raise InputError(f"model not found: {model}")
     if not gt_path.exists():
         raise InputError(f"ground truth not found: {gt_path}")
     recon = read_model(model)
     gt = gt_from_reconstruction(read_model(gt_path)) if gt_path.is_dir() else read_gt_table(gt_path)
-    result = evaluate(recon, gt, seed=args.seed)
-    print(json.dumps(_rounded(result.to_dict(per_image=args.per_image)), indent=2))
+    result = evaluate(recon, gt, seed=options.seed)
+    print(json.dumps(_rounded(result.to_dict(per_image=options.per_image)), indent=2))
     return 0
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     from sfm.io.colmap_model import read_model, write_model, write_ply
 
+    options = options_of(ExportOptions, args)
     model = Path(args.model)
     if not model.exists():
         raise InputError(f"model not found: {model}")
     recon = read_model(model)
     out = Path(args.out)
-    if args.to == "ply":
+    if options.to == "ply":
         out.parent.mkdir(parents=True, exist_ok=True)
         write_ply(recon, out)
     else:
         out.mkdir(parents=True, exist_ok=True)
-        write_model(recon, out, fmt=args.to)
+        write_model(recon, out, fmt=options.to)
     log.info("wrote %s (%d images, %d points)", out, len(recon.images), len(recon.points3D))
     return 0
 
 
-def _recorder(args: argparse.Namespace, stage: str):
-    from sfm.viz.recorder import Recorder
+def cmd_synth(args: argparse.Namespace) -> int:
+    from sfm.stages.synth import run_synth
 
-    workspace = Path(args.workspace)
-    if args.no_recording:
-        return Recorder.disabled()
-    return Recorder(workspace / f"recording-{stage}.rrd", workspace=workspace, spawn=args.spawn)
-
-
-def cmd_cluster(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
-
-    from sfm.stages.cluster import run_cluster
-
-    options = options_from_args(ClusterOptions, args)
-    with _recorder(args, "cluster") as recorder:
-        result = run_cluster(Path(args.workspace), options, recorder)
-    print(json.dumps(asdict(result), indent=2))
+    _print(run_synth(Path(args.workspace), options_of(SynthOptions, args)))
     return 0
-
-
-def _executor(args: argparse.Namespace):
-    if getattr(args, "executor", "local") == "dask":
-        from sfm.execution.dask_cluster import DaskExecutor
-
-        return DaskExecutor(scheduler=args.scheduler, workers=getattr(args, "workers", 0) or getattr(args, "num_workers", 0))
-    if getattr(args, "scheduler", None):
-        raise InputError("--scheduler needs --executor dask")
-    from sfm.execution.local import LocalExecutor
-
-    return LocalExecutor(workers=getattr(args, "workers", 0))
-
-
-def _add_executor_flags(p: argparse.ArgumentParser, workers: bool = True) -> None:
-    if workers:
-        p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
-    p.add_argument("--executor", choices=["local", "dask"], default="local",
-                   help="where the work runs: local processes, or a Dask cluster (default: local)")
-    p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (default: start a LocalCluster)")
-
-
-def cmd_map(args: argparse.Namespace) -> int:
-    from sfm.stages.map import run_map
-
-    options = options_from_args(MapperOptions, args)
-    with _recorder(args, "map") as recorder, _executor(args) as executor:
-        result = run_map(Path(args.workspace), options, recorder, executor)
-    print(json.dumps({"clusters": result.num_clusters, "models": result.models}, indent=2))
-    return 0
-
-
-def cmd_extract(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
-
-    from sfm.stages.extract import ExtractOptions, run_extract
-
-    options = options_from_args(ExtractOptions, args)
-    _check_image_dir(args.images)
-    with _executor(args) as executor:
-        result = run_extract(Path(args.images), Path(args.workspace), options, _remote(executor))
-    with _recorder(args, "extract") as recorder:
-        from sfm.viz.frontend import log_images
-
-        log_images(recorder, Path(args.images), Path(args.workspace))
-    print(json.dumps(asdict(result), indent=2))
-    return 0
-
-
-def cmd_match(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
-
-    from sfm.stages.match import MatchOptions, run_match
-
-    options = options_from_args(MatchOptions, args)
-    with _executor(args) as executor:
-        result = run_match(Path(args.workspace), options, _remote(executor))
-    with _recorder(args, "match") as recorder:
-        from sfm.viz.frontend import log_verified_graph
-
-        log_verified_graph(recorder, Path(args.workspace))
-    print(json.dumps(asdict(result), indent=2))
-    return 0
-
-
-def _remote(executor):
-    """The executor when it is distributed (extract and match then run on it), else None."""
-    return executor if hasattr(executor, "imap") else None
-
-
-def _check_image_dir(images: str) -> None:
-    if not Path(images).is_dir():
-        raise InputError(f"image folder not found: {images}")
-
-
-def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from sfm.stages.cluster import ClusterOptions
-    from sfm.stages.extract import ExtractOptions
-    from sfm.stages.match import MatchOptions
-    from sfm.merge.cluster_graph import MergeOptions
-    from sfm.stages.merge import ReconstructOptions, run_reconstruct
-
-    if args.images is not None:
-        _check_image_dir(args.images)
-    options = ReconstructOptions(
-        extract=options_from_args(ExtractOptions, args), match=options_from_args(MatchOptions, args),
-        cluster=options_from_args(ClusterOptions, args), mapper=options_from_args(MapperOptions, args),
-        merge=options_from_args(MergeOptions, args))
-    workspace = Path(args.workspace)
-    from sfm.execution.process_pool import start_pool_server
-    from sfm.viz.recorder import Recorder
-
-    if getattr(args, "executor", "local") == "local":
-        start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
-    recorder = Recorder.disabled() if args.no_recording else Recorder(workspace / "recording.rrd", workspace, spawn=args.spawn)
-    with recorder, _executor(args) as executor:
-        report = run_reconstruct(workspace, Path(args.images) if args.images else None, options, executor, recorder)
-    print(json.dumps({k: report.get(k) for k in ("images", "registered", "points", "mean_track_length",
-                      "mean_reprojection_error", "num_clusters", "num_models", "times", "warnings") if k in report}, indent=2))
-    return 0
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    from sfm.api import make_options
-    from sfm.io.colmap_model import read_model
-    from sfm.evaluation.metrics import evaluate, read_gt_table
-    from sfm.execution.local import LocalExecutor
-    from sfm.stages.merge import run_reconstruct
-    from sfm.viz.recorder import Recorder
-    from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
-
-    workspace = Path(args.workspace)
-    if (workspace / "database.db").exists():
-        raise InputError(f"{workspace} already holds a run; give a new folder")
-    scene = write_rendered_scene(workspace / "scene", RenderOptions(num_images=args.images, seed=args.seed))
-    options = make_options(max_cluster_size=args.max_cluster_size, seed=args.seed)
-    with Recorder(workspace / "recording.rrd", workspace) as recorder:
-        report = run_reconstruct(workspace, Path(scene["image_dir"]), options, LocalExecutor(args.workers), recorder)
-    result = evaluate(read_model(workspace / "sparse" / "0"), read_gt_table(Path(scene["gt_table"])))
-    summary = {"images": report["images"], "clusters": report.get("num_clusters"), "models": report.get("num_models"),
-               "registered": result.num_registered, "median_rotation_error_deg": result.median_rotation_error_deg,
-               "auc@1": result.auc[1], "auc@5": result.auc[5], "auc@10": result.auc[10], "times": report.get("times"),
-               "model": str(workspace / "sparse" / "0"), "recording": str(workspace / "recording.rrd")}
-    print(json.dumps(_rounded(summary, 4), indent=2))
-    return 0
-
-
-def cmd_merge(args: argparse.Namespace) -> int:
-    from dataclasses import asdict
-
-    from sfm.merge.cluster_graph import MergeOptions
-    from sfm.stages.merge import run_merge
-
-    with _recorder(args, "merge") as recorder:
-        result = run_merge(Path(args.workspace), options_from_args(MapperOptions, args), options_from_args(MergeOptions, args), recorder)
-    print(json.dumps(asdict(result), indent=2))
-    return 0
-
-
-MAP_FLAGS = {"refine_given_intrinsics": "refine-intrinsics", "refine_intrinsics": "intrinsics-refinement"}
-
-
-def _add_recording_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--spawn", action="store_true", help="also open a Rerun viewer (when installed)")
-    p.add_argument("--no-recording", action="store_true", help="do not write the Rerun recording")
 
 
 # ------------------------------------------------------------------------------- parser
+def _workspace(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--workspace", required=True, help=what)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="graphsfm",
-        description="Graph-based parallel Structure-from-Motion (GraphSfM).",
-    )
+    parser = argparse.ArgumentParser(prog="graphsfm", description="Graph-based parallel Structure-from-Motion (GraphSfM).")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug messages on stderr")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("synth", help="make a synthetic scene with exact ground truth")
-    p.add_argument("--workspace", required=True, help="output folder")
-    p.add_argument("--scene", choices=["orbit", "street", "aerial", "rendered"], default="orbit",
-                   help="correspondence-level scene written into WORK/database.db, or 'rendered': "
-                        "PNG images in WORK/images (default: orbit)")
-    add_options(p, SynthOptions, flags={"num_images": "images"}, skip=("scene",))
-    p.set_defaults(func=cmd_synth)
-
-    p = sub.add_parser("cluster", help="cut the image graph into overlapping clusters (WORK/clusters.json)")
-    p.add_argument("--workspace", required=True, help="workspace with database.db")
-    add_options(p, ClusterOptions, flags={"completeness_ratio": "completeness", "max_overlap": "overlap"})
-    _add_recording_flags(p)
-    p.set_defaults(func=cmd_cluster)
-
-    p = sub.add_parser("map", help="incremental SfM of each cluster (or of all images) -> sparse/ or clusters/")
-    p.add_argument("--workspace", required=True, help="workspace with database.db (and clusters.json)")
-    _add_executor_flags(p)
-    add_options(p, MapperOptions, flags=MAP_FLAGS)
-    _add_recording_flags(p)
-    p.set_defaults(func=cmd_map)
-
-    from sfm.stages.extract import ExtractOptions
-    from sfm.stages.match import MatchOptions
-    from sfm.merge.cluster_graph import MergeOptions
-
     p = sub.add_parser("extract", help="SIFT features of every image into WORK/database.db")
     p.add_argument("--images", required=True, help="image folder (searched recursively)")
-    p.add_argument("--workspace", required=True, help="output folder")
-    add_options(p, ExtractOptions)
-    _add_executor_flags(p, workers=False)
-    _add_recording_flags(p)
+    _workspace(p, "output folder")
+    for cls in (ExtractOptions, ExecutionOptions, RecordingOptions):
+        add_options(p, cls)
     p.set_defaults(func=cmd_extract)
 
     p = sub.add_parser("match", help="select pairs, match descriptors, verify two-view geometry")
-    p.add_argument("--workspace", required=True, help="workspace with database.db")
-    add_options(p, MatchOptions)
-    _add_executor_flags(p, workers=False)
-    _add_recording_flags(p)
+    _workspace(p, "workspace with database.db")
+    for cls in (MatchOptions, ExecutionOptions, RecordingOptions):
+        add_options(p, cls)
     p.set_defaults(func=cmd_match)
+
+    p = sub.add_parser("cluster", help="cut the image graph into overlapping clusters (WORK/clusters.json)")
+    _workspace(p, "workspace with database.db")
+    for cls in (ClusterOptions, RecordingOptions):
+        add_options(p, cls)
+    p.set_defaults(func=cmd_cluster)
+
+    p = sub.add_parser("map", help="incremental SfM of each cluster (or of all images) -> sparse/ or clusters/")
+    _workspace(p, "workspace with database.db (and clusters.json)")
+    for cls in (MapperOptions, ExecutionOptions, RecordingOptions):
+        add_options(p, cls)
+    p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("merge", help="merge the local models along the MinST into sparse/N, then refine")
+    _workspace(p, "workspace with clusters/C<k>/<m> models")
+    add_options(p, MergeOptions)
+    add_options(p, MapperOptions, only=MERGE_MAPPER_OPTIONS)
+    add_options(p, RecordingOptions)
+    p.set_defaults(func=cmd_merge)
 
     p = sub.add_parser("reconstruct", help="every stage: extract, match, cluster, map, merge")
     p.add_argument("--images", help="image folder (omit to start from an existing database.db)")
-    p.add_argument("--workspace", required=True, help="output folder")
-    _add_executor_flags(p)
-    add_options(p, ExtractOptions)
-    add_options(p, MatchOptions)
-    add_options(p, ClusterOptions, flags={"completeness_ratio": "completeness", "max_overlap": "overlap"})
-    add_options(p, MapperOptions, flags=MAP_FLAGS)
-    add_options(p, MergeOptions)
-    _add_recording_flags(p)
+    _workspace(p, "output folder")
+    for cls in (ExtractOptions, MatchOptions, ClusterOptions, MapperOptions, MergeOptions, ExecutionOptions,
+                RecordingOptions):
+        add_options(p, cls)
     p.set_defaults(func=cmd_reconstruct)
 
-    p = sub.add_parser("merge", help="merge the local models along the MinST into sparse/N, then refine")
-    p.add_argument("--workspace", required=True, help="workspace with clusters/C<k>/<m> models")
-    add_options(p, MergeOptions)
-    add_options(p, MapperOptions, flags=MAP_FLAGS)
-    _add_recording_flags(p)
-    p.set_defaults(func=cmd_merge)
-
-    p = sub.add_parser("demo", help="render a small scene, reconstruct it with >= 3 clusters, print its accuracy")
+    p = sub.add_parser("demo", help="render a small scene, reconstruct it with several clusters, print its accuracy")
     p.add_argument("workspace", help="output folder (new)")
-    p.add_argument("--images", type=int, default=30, help="rendered views (default 30)")
-    p.add_argument("--max-cluster-size", type=int, default=12, help="cluster size bound (default 12: 3 clusters)")
-    p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the scene and of every stage (default 0)")
+    for cls in (DemoOptions, ExecutionOptions, RecordingOptions):
+        add_options(p, cls)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("evaluate", help="compare a model with ground truth; prints JSON")
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
     p.add_argument("--gt", required=True, help="GT table (cameras_gt_opencv.txt) or a COLMAP model folder")
-    p.add_argument("--seed", type=int, default=0, help="seed of the robust alignment (default: 0)")
-    p.add_argument("--per-image", action="store_true", help="also print each image's rotation and centre error")
+    add_options(p, EvaluateOptions)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("export", help="convert a model to COLMAP text, binary, or a PLY point cloud")
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
-    p.add_argument("--to", choices=["txt", "bin", "ply"], required=True, help="output format")
     p.add_argument("out", help="output folder (txt, bin) or .ply file")
+    add_options(p, ExportOptions)
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("synth", help="make a scene with exact ground truth: a database of simulated matches, or images")
+    _workspace(p, "output folder (new)")
+    add_options(p, SynthOptions)
+    p.set_defaults(func=cmd_synth)
     return parser
 
 

@@ -1,5 +1,4 @@
-"""Synthetic bundle-adjustment scenes shared by test_bundle_adjustment.py and
-test_pose_refinement.py.
+"""Synthetic bundle-adjustment scenes shared by the bundle-adjustment tests.
 
 A ring of cameras looking at a cube of points, every point seen by every camera, observations
 exact or with Gaussian pixel noise.
@@ -10,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from backend.bundle_adjustment import project
+from backend.camera_projection import project
 
 SIMPLE_RADIAL = ("SIMPLE_RADIAL", np.array([500.0, 320.0, 240.0, -0.05]))
 

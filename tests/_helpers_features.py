@@ -11,7 +11,7 @@ from PIL import Image
 
 from sfm.io.database import Database
 
-FAST = {"num_workers": 1, "max_num_features": 1000}
+FAST = {"max_num_features": 1000}
 
 
 def textured(height: int, width: int, seed: int) -> np.ndarray:

@@ -16,7 +16,8 @@ import pytest
 from _helpers_features import textured
 
 from sfm.io.colmap_model import read_model
-from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+from sfm.synthetic.options import RenderOptions
+from sfm.synthetic.rendered import write_rendered_scene
 
 
 def graphsfm(*argv: str) -> subprocess.CompletedProcess:
@@ -149,7 +150,7 @@ def test_a_huge_image_is_downscaled_not_held_in_memory(tmp_path):
     code = ("import resource, subprocess, sys; p = subprocess.run(sys.argv[1:]); "
             "print(p.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
     out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "sfm.cli", "extract", "--images", str(d),
-                          "--workspace", str(ws), "--num-workers", "1", "--no-recording"],
+                          "--workspace", str(ws), "--workers", "1", "--no-recording"],
                          capture_output=True, text=True, timeout=900, check=True).stdout.split()
     returncode, peak_kib = int(out[-2]), int(out[-1])
     assert returncode == 0

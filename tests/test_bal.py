@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from backend.bal import read_bal
-from backend.bundle_adjustment import BAOptions, bundle_adjust, cam_from_world_from_pose3
+from backend.ba_problem import BAOptions
+from backend.bundle_adjustment import bundle_adjust, cam_from_world_from_pose3
 
 
 def test_bal_reader_agrees_with_gtsam(shared_data):
@@ -39,9 +40,7 @@ def test_bal_reader_agrees_with_gtsam(shared_data):
 )
 def test_bal_problems_converge(shared_data, name, refine, initial, bound):
     problem = read_bal(shared_data / "bal_small" / name)
-    result = bundle_adjust(
-        **problem.arrays(), options=BAOptions(loss="none", refine_intrinsics=refine)
-    )
+    result = bundle_adjust(problem, options=BAOptions(loss="none", refine_intrinsics=refine))
     assert result.success
     assert result.initial_rms == pytest.approx(initial, abs=1e-4)
     assert result.final_rms < bound < result.initial_rms

@@ -3,7 +3,7 @@ fixed parameters, intrinsics refinement and option checks.
 
 Synthetic scenes (_helpers_bundle_adjustment.py): a ring of cameras looking at a cube of points,
 every point seen by every camera, observations exact or with Gaussian pixel noise; known answers,
-tight tolerances. Pose-only refinement is in test_pose_refinement.py, the BAL reader in test_bal.py.
+tight tolerances. The BAL reader is in test_bal.py.
 """
 
 from __future__ import annotations
@@ -16,15 +16,9 @@ import pytest
 from _helpers_bundle_adjustment import perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
-from backend.bundle_adjustment import (
-    BAOptions,
-    bundle_adjust,
-    cam_from_world_from_pose3,
-    ds2_from_params,
-    pose3_from_cam_from_world,
-    project,
-    reprojection_errors,
-)
+from backend.ba_problem import BAOptions, BAProblem
+from backend.bundle_adjustment import bundle_adjust, cam_from_world_from_pose3, pose3_from_cam_from_world
+from backend.camera_projection import ds2_from_params, project, reprojection_errors
 
 # a longer focal length: with 500 points and 0.5 px noise, pose and focal noise floors are
 # ~0.02 deg and ~0.03 %, well below the tolerances the noisy tests check
@@ -125,7 +119,7 @@ def test_pose_conversions_round_trip_and_agree_with_gtsam_projection():
 def test_exact_observations_recover_the_truth(ordering):
     truth = ring_scene()
     start = perturb(truth, rot_deg=2.0, trans_frac=0.05)
-    result = bundle_adjust(**start, options=replace(EXACT, ordering=ordering))
+    result = bundle_adjust(BAProblem(**start), options=replace(EXACT, ordering=ordering))
     assert result.success and result.converged
     assert result.initial_rms > 10.0
     assert result.final_rms < 1e-8
@@ -146,7 +140,7 @@ def test_exact_observations_recover_the_truth(ordering):
 def test_noisy_rms_matches_the_residual_degrees_of_freedom():
     sigma = 0.5
     truth = ring_scene(noise=sigma, seed=5)
-    result = bundle_adjust(**perturb(truth), options=replace(EXACT, refine_intrinsics="focal"))
+    result = bundle_adjust(BAProblem(**perturb(truth)), options=replace(EXACT, refine_intrinsics="focal"))
     n_res = 2 * result.num_observations
     dof = 6 * 10 + 3 * 300 + 1 - 7  # poses, points, focal, minus the similarity gauge
     expected = sigma * np.sqrt(2.0) * np.sqrt((n_res - dof) / n_res)
@@ -172,9 +166,9 @@ def test_noisy_rms_matches_the_residual_degrees_of_freedom():
 def test_last_decrease_says_where_the_tolerance_stopped_lm():
     truth = ring_scene(noise=0.5, seed=5)
     start = perturb(truth)
-    loose = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal", relative_tolerance=1e-3))
+    loose = bundle_adjust(BAProblem(**start), options=replace(EXACT, refine_intrinsics="focal", relative_tolerance=1e-3))
     assert loose.converged and 0.0 <= loose.last_decrease < 1e-3
-    one = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal", max_iterations=1))
+    one = bundle_adjust(BAProblem(**start), options=replace(EXACT, refine_intrinsics="focal", max_iterations=1))
     assert one.iterations == 1 and not one.converged
     # the first iteration from a perturbed start removes most of the cost
     assert one.last_decrease == pytest.approx(1.0 - (one.final_rms / one.initial_rms) ** 2, abs=0.05)
@@ -184,9 +178,9 @@ def test_last_decrease_says_where_the_tolerance_stopped_lm():
 def test_gauss_newton_first_matches_lm_from_a_good_start():
     truth = ring_scene(noise=0.5, seed=5)
     start = perturb(truth, keep=(0, 4))
-    options = BAOptions(fixed_poses=(0, 4), refine_intrinsics="none")
-    lm = bundle_adjust(**start, options=options)
-    gn = bundle_adjust(**start, options=replace(options, optimizer="gauss_newton_or_lm"))
+    options = BAOptions(refine_intrinsics="none")
+    lm = bundle_adjust(BAProblem(**start, fixed_poses=(0, 4)), options=options)
+    gn = bundle_adjust(BAProblem(**start, fixed_poses=(0, 4)), options=replace(options, optimizer="gauss_newton_or_lm"))
     assert gn.success and gn.converged and gn.iterations == lm.iterations
     np.testing.assert_allclose(gn.points, lm.points, atol=1e-7)
     np.testing.assert_allclose(gn.translations, lm.translations, atol=1e-7)
@@ -214,9 +208,9 @@ def test_gauss_newton_first_falls_back_to_lm(monkeypatch, failure):
 
     truth = ring_scene(noise=0.5, seed=5)
     start = perturb(truth)
-    lm = bundle_adjust(**start, options=BAOptions(refine_intrinsics="focal"))
+    lm = bundle_adjust(BAProblem(**start), options=BAOptions(refine_intrinsics="focal"))
     monkeypatch.setattr(solver.gtsam, "GaussNewtonOptimizer", Failing)
-    gn = bundle_adjust(**start, options=BAOptions(refine_intrinsics="focal", optimizer="gauss_newton_or_lm"))
+    gn = bundle_adjust(BAProblem(**start), options=BAOptions(refine_intrinsics="focal", optimizer="gauss_newton_or_lm"))
     assert gn.success and gn.final_rms == lm.final_rms
     np.testing.assert_array_equal(gn.points, lm.points)
     assert gn.iterations == lm.iterations + (failure == "cost_rose")
@@ -233,9 +227,7 @@ def test_robust_loss_resists_gross_outliers():
     start = perturb({**truth, "obs_xy": corrupted})
     errors = {}
     for loss in ("huber", "cauchy", "none"):
-        result = bundle_adjust(
-            **start, options=BAOptions(loss=loss, loss_scale=1.0, refine_intrinsics="none")
-        )
+        result = bundle_adjust(BAProblem(**start), options=BAOptions(loss=loss, loss_scale=1.0, refine_intrinsics="none"))
         errors[loss] = pose_errors(result, truth)[0]
     assert errors["huber"] < 0.05 and errors["cauchy"] < 0.05
     assert errors["none"] > 0.2 and errors["none"] > 5 * max(errors["huber"], errors["cauchy"])
@@ -246,7 +238,7 @@ def test_fixed_poses_and_fixed_intrinsics_are_exactly_unchanged():
     fixed = (0, 3, 7)
     start = perturb(truth, keep=fixed)
     start["camera_params"] = [truth["camera_params"][0] * np.array([1.05, 1, 1, 1])]
-    result = bundle_adjust(**start, options=BAOptions(fixed_poses=fixed, refine_intrinsics="none"))
+    result = bundle_adjust(BAProblem(**start, fixed_poses=fixed), options=BAOptions(refine_intrinsics="none"))
     for i in fixed:
         assert np.array_equal(result.rotations[i], start["rotations"][i])
         assert np.array_equal(result.translations[i], start["translations"][i])
@@ -257,9 +249,7 @@ def test_fixed_poses_and_fixed_intrinsics_are_exactly_unchanged():
 
 def test_fixed_poses_with_exact_data_give_the_truth_without_alignment():
     truth = ring_scene()
-    result = bundle_adjust(
-        **perturb(truth, keep=(0, 5)), options=replace(EXACT, fixed_poses=(0, 5))
-    )
+    result = bundle_adjust(BAProblem(**perturb(truth, keep=(0, 5)), fixed_poses=(0, 5)), options=EXACT)
     np.testing.assert_allclose(result.rotations, truth["rotations"], atol=1e-9)
     np.testing.assert_allclose(result.translations, truth["translations"], atol=1e-9)
     np.testing.assert_allclose(result.points, truth["points"], atol=1e-9)
@@ -268,7 +258,7 @@ def test_fixed_poses_with_exact_data_give_the_truth_without_alignment():
 def test_one_fixed_pose_plus_the_scale_prior_fix_the_gauge():
     truth = ring_scene()
     start = perturb(truth, keep=(2,))
-    result = bundle_adjust(**start, options=replace(EXACT, fixed_poses=(2,)))
+    result = bundle_adjust(BAProblem(**start, fixed_poses=(2,)), options=EXACT)
     assert np.array_equal(result.rotations[2], truth["rotations"][2])
     c_start = centres(start["rotations"], start["translations"])
     c_end = centres(result.rotations, result.translations)
@@ -291,7 +281,7 @@ def test_focal_refinement_recovers_a_five_percent_error():
     truth = ring_scene(model=LONG_FOCAL, n_points=500, noise=0.5, seed=11)
     start = perturb(truth)
     start["camera_params"] = [truth["camera_params"][0] * np.array([1.05, 1, 1, 1])]
-    result = bundle_adjust(**start, options=BAOptions(refine_intrinsics="focal"))
+    result = bundle_adjust(BAProblem(**start), options=BAOptions(refine_intrinsics="focal"))
     f_est, f_true = result.camera_params[0][0], truth["camera_params"][0][0]
     assert abs(f_est / f_true - 1) < 1e-3
     # everything but the focal length is held exactly
@@ -302,7 +292,7 @@ def test_radial_distortion_is_recovered():
     truth = ring_scene(model=("SIMPLE_RADIAL", np.array([500.0, 320.0, 240.0, -0.12])))
     start = perturb(truth)
     start["camera_params"] = [np.array([480.0, 320.0, 240.0, 0.0])]
-    result = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal_radial"))
+    result = bundle_adjust(BAProblem(**start), options=replace(EXACT, refine_intrinsics="focal_radial"))
     np.testing.assert_allclose(
         result.camera_params[0], truth["camera_params"][0], rtol=1e-9, atol=1e-9
     )
@@ -326,7 +316,7 @@ def test_all_intrinsics_including_principal_point(model):
     shifted[:n_focal] *= 0.97
     shifted[n_focal : n_focal + 2] += [4.0, -3.0]
     start["camera_params"] = [shifted]
-    result = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="all"))
+    result = bundle_adjust(BAProblem(**start), options=replace(EXACT, refine_intrinsics="all"))
     np.testing.assert_allclose(
         result.camera_params[0], truth["camera_params"][0], rtol=1e-8, atol=1e-8
     )
@@ -346,7 +336,7 @@ def test_camera_groups_share_intrinsics():
         truth["camera_params"][0] * [0.96, 1, 1, 0],
         truth["camera_params"][1] * [1.03, 0.98, 1, 1],
     ]
-    result = bundle_adjust(**start, options=replace(EXACT, refine_intrinsics="focal_radial"))
+    result = bundle_adjust(BAProblem(**start), options=replace(EXACT, refine_intrinsics="focal_radial"))
     for got, want in zip(result.camera_params, truth["camera_params"]):
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
 
@@ -355,15 +345,15 @@ def test_camera_groups_share_intrinsics():
 def test_bad_options_raise():
     scene = ring_scene(n_images=3, n_points=20)
     with pytest.raises(ValueError, match="loss"):
-        bundle_adjust(**scene, options=BAOptions(loss="l1"))
+        bundle_adjust(BAProblem(**scene), options=BAOptions(loss="l1"))
     with pytest.raises(ValueError, match="refine_intrinsics"):
-        bundle_adjust(**scene, options=BAOptions(refine_intrinsics="everything"))
+        bundle_adjust(BAProblem(**scene), options=BAOptions(refine_intrinsics="everything"))
     with pytest.raises(ValueError, match="observation"):
-        bundle_adjust(**{**scene, "obs_image": scene["obs_image"][:0]})
+        bundle_adjust(BAProblem(**{**scene, "obs_image": scene["obs_image"][:0]}))
     with pytest.raises(ValueError, match="not supported"):
-        bundle_adjust(**{**scene, "camera_models": ["FISHEYE"]})
+        bundle_adjust(BAProblem(**{**scene, "camera_models": ["FISHEYE"]}))
     with pytest.raises(ValueError, match="optimizer"):
-        bundle_adjust(**scene, options=BAOptions(optimizer="dogleg"))
+        bundle_adjust(BAProblem(**scene), options=BAOptions(optimizer="dogleg"))
 
 
 def test_observation_sigmas_weigh_the_observations():
@@ -376,9 +366,9 @@ def test_observation_sigmas_weigh_the_observations():
     noisy = {**truth, "obs_xy": truth["obs_xy"] + rng.normal(size=truth["obs_xy"].shape) * sigma[:, None]}
     start = perturb(noisy)
     options = replace(EXACT, refine_intrinsics="none")
-    plain = bundle_adjust(**start, options=options)
-    weighted = bundle_adjust(**start, options=options, obs_sigma=sigma)
-    ones = bundle_adjust(**start, options=options, obs_sigma=np.ones(len(sigma)))
+    plain = bundle_adjust(BAProblem(**start), options=options)
+    weighted = bundle_adjust(BAProblem(**start, obs_sigma=sigma), options=options)
+    ones = bundle_adjust(BAProblem(**start, obs_sigma=np.ones(len(sigma))), options=options)
     plain_err, weighted_err = pose_errors(plain, truth)[0], pose_errors(weighted, truth)[0]
     assert weighted_err < 0.4 * plain_err, (weighted_err, plain_err)
     assert weighted_err < 0.04, (weighted_err, plain_err)
@@ -389,4 +379,4 @@ def test_observation_sigmas_weigh_the_observations():
     assert weighted.final_rms == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-12)
     assert weighted.final_rms > plain.final_rms  # the weighted fit trades pixels for likelihood
     with pytest.raises(ValueError, match="obs_sigma"):
-        bundle_adjust(**start, options=options, obs_sigma=np.zeros(len(sigma)))
+        bundle_adjust(BAProblem(**start, obs_sigma=np.zeros(len(sigma))), options=options)

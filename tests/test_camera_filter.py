@@ -1,4 +1,4 @@
-"""COLMAP's image filter after global BA (sfm.mapper.bundle_adjuster.drop_degenerate_cameras)."""
+"""COLMAP's image filter after global BA (sfm.mapper.state.MapperState.drop_degenerate_cameras)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from sfm.evaluation.metrics import read_gt_table
-from sfm.mapper.payload import MapperOptions
+from sfm.mapper.options import MapperOptions
 from sfm.mapper.state import MapperState
-from sfm.stages.map import load_payloads
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.payloads import load_payloads
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 @pytest.fixture(scope="module")

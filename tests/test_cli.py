@@ -13,7 +13,7 @@ from sfm.cli import main
 
 def test_synth_evaluate_export(tmp_path, capsys):
     w = tmp_path / "w"
-    assert main(["synth", "--scene", "street", "--images", "20", "--observations-per-image", "300", "--outlier-ratio", "0.2", "--workspace", str(w)]) == 0
+    assert main(["synth", "--scene", "street", "--num-images", "20", "--observations-per-image", "300", "--outlier-ratio", "0.2", "--workspace", str(w)]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["images"] == 20 and (w / "database.db").exists() and (w / "log.txt").exists()
     assert main(["evaluate", str(w / "gt" / "model"), "--gt", str(w / "gt" / "cameras_gt_opencv.txt")]) == 0
@@ -31,7 +31,7 @@ def test_synth_evaluate_export(tmp_path, capsys):
 
 
 def test_rendered_synth(tmp_path, capsys):
-    assert main(["synth", "--scene", "rendered", "--images", "3", "--workspace", str(tmp_path)]) == 0
+    assert main(["synth", "--scene", "rendered", "--num-images", "3", "--workspace", str(tmp_path)]) == 0
     assert len(list((tmp_path / "images").glob("*.png"))) == 3
 
 
@@ -39,8 +39,8 @@ def test_rendered_synth(tmp_path, capsys):
     "argv,code,message",
     [
         (["evaluate", "nowhere", "--gt", "nothing.txt"], 2, "model not found: nowhere"),
-        (["synth", "--images", "1", "--workspace", "{tmp}/one"], 2, "at least 2 images"),
-        (["synth", "--outlier-ratio", "1.5", "--workspace", "{tmp}/bad"], 2, "--outlier-ratio must be in [0, 1)"),
+        (["synth", "--num-images", "1", "--workspace", "{tmp}/one"], 2, "--num-images: must be >= 2; got 1"),
+        (["synth", "--outlier-ratio", "1.5", "--workspace", "{tmp}/bad"], 2, "--outlier-ratio: must be >= 0 and <= 0.99; got 1.5"),
     ],
 )
 def test_errors_are_one_line_with_exit_code(tmp_path, argv, code, message):
@@ -53,7 +53,7 @@ def test_errors_are_one_line_with_exit_code(tmp_path, argv, code, message):
 
 
 def test_existing_workspace_is_not_overwritten(tmp_path):
-    args = ["synth", "--images", "5", "--observations-per-image", "100", "--workspace", str(tmp_path)]
+    args = ["synth", "--num-images", "5", "--observations-per-image", "100", "--workspace", str(tmp_path)]
     assert main(args) == 0
     proc = subprocess.run([sys.executable, "-m", "sfm.cli", *args], capture_output=True, text=True)
     assert proc.returncode == 2 and "exists" in proc.stderr and "Traceback" not in proc.stderr

@@ -10,11 +10,13 @@ import pytest
 from graph.image_graph import build_image_graph
 from graph.partition import cut_weight
 from sfm.cli import main
-from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.clustering.options import ClusterOptions
+from sfm.stages.cluster import run_cluster
 from sfm.io.database import Database
 from sfm.errors import InputError
 from sfm.viz.recorder import entity_paths
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def _graph_from_db(path):
@@ -49,7 +51,7 @@ def _check_clusters(workspace, s_max, completeness, n_images):
 
 def test_cluster_aerial_database(tmp_path):
     run_synth(tmp_path, SynthOptions(scene="aerial", num_images=300, observations_per_image=500, seed=0))
-    assert main(["cluster", "--workspace", str(tmp_path), "--max-cluster-size", "40", "--completeness", "0.5", "--overlap", "20", "--seed", "0"]) == 0
+    assert main(["cluster", "--workspace", str(tmp_path), "--max-cluster-size", "40", "--completeness", "0.5", "--max-overlap", "20", "--seed", "0"]) == 0
     data, cores = _check_clusters(tmp_path, 40, 0.5, 300)
     assert len(data["clusters"]) >= 8 and len(data["maxst"]) == len(data["clusters"]) - 1
     # The cut is good: far less weight than random partitions of the same sizes.

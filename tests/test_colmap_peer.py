@@ -14,7 +14,8 @@ from colmap_on_database import run_colmap_incremental  # noqa: E402
 
 from sfm.io.colmap_model import read_model  # noqa: E402
 from sfm.evaluation.metrics import evaluate, read_gt_table  # noqa: E402
-from sfm.synthetic.scenes import SynthOptions, run_synth  # noqa: E402
+from sfm.stages.synth import run_synth  # noqa: E402
+from sfm.synthetic.options import SynthOptions  # noqa: E402
 
 
 def _map_with_colmap(tmp_path: Path, opts: SynthOptions):

@@ -19,7 +19,8 @@ pytest.importorskip("distributed")
 
 from sfm.cli import main
 from sfm.io.colmap_model import read_model
-from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+from sfm.synthetic.options import RenderOptions
+from sfm.synthetic.rendered import write_rendered_scene
 
 
 class LoopbackCluster:
@@ -120,7 +121,8 @@ def _kill_first_busy_worker(loopback: LoopbackCluster, killed: list, stop: threa
 
 
 def test_run_survives_a_killed_worker(tmp_path, loopback):
-    from sfm.synthetic.scenes import SynthOptions, run_synth
+    from sfm.stages.synth import run_synth
+    from sfm.synthetic.options import SynthOptions
 
     work = tmp_path / "work"
     run_synth(work, SynthOptions(scene="aerial", num_images=60, observations_per_image=400, seed=2))

@@ -9,22 +9,25 @@ pytest.importorskip("distributed")
 
 from sfm.execution.dask_cluster import DaskExecutor
 from sfm.execution.local import LocalExecutor
-from sfm.mapper.payload import MapperOptions
-from sfm.stages.map import load_payloads
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.mapper.options import MapperOptions
+from sfm.stages.map import map_cluster
+from sfm.stages.payloads import load_payloads
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def test_dask_local_cluster_matches_local_executor(tmp_path):
     run_synth(tmp_path, SynthOptions(scene="aerial", num_images=24, observations_per_image=400, seed=3))
     names = sorted(f"aerial_{i:05d}.jpg" for i in range(24))
     payloads = load_payloads(tmp_path / "database.db", [names[:14], names[10:]], True, 15)
-    local = {r.index: r for r in LocalExecutor(workers=1).run(payloads, MapperOptions())}
+    tasks = [(p, MapperOptions()) for p in payloads]
+    local = {r.index: r for r in LocalExecutor(workers=1).map(map_cluster, tasks, ordered=False)}
     with DaskExecutor(workers=2) as executor:
-        remote = {r.index: r for r in executor.run(payloads, MapperOptions())}
+        remote = {r.index: r for r in executor.map(map_cluster, tasks, ordered=False, errors="return")}
         assert executor.address and executor.address.startswith("tcp://")
     for k in (0, 1):
         assert remote[k].error is None and remote[k].worker.startswith("tcp://")
-        a, b = local[k].models[0], remote[k].models[0]
+        a, b = local[k].value[0], remote[k].value[0]
         assert sorted(a.images) == sorted(b.images)
         for i in a.images:
             np.testing.assert_array_equal(a.images[i].cam_from_world_rotation, b.images[i].cam_from_world_rotation)
@@ -35,14 +38,17 @@ def test_dask_extract_and_match_write_the_same_database(tmp_path):
     """Features and verified pairs computed on Dask workers (image bytes and feature arrays travel,
     not paths) equal the local ones."""
     from sfm.io.database import Database
-    from sfm.stages.extract import ExtractOptions, run_extract
-    from sfm.stages.match import MatchOptions, run_match
-    from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+    from sfm.features.options import ExtractOptions
+    from sfm.stages.extract import run_extract
+    from sfm.matching.options import MatchOptions
+    from sfm.stages.match import run_match
+    from sfm.synthetic.options import RenderOptions
+    from sfm.synthetic.rendered import write_rendered_scene
 
     write_rendered_scene(tmp_path / "scene", RenderOptions(num_images=6, seed=1))
     images = tmp_path / "scene" / "images"
-    run_extract(images, tmp_path / "local", ExtractOptions(num_workers=1))
-    run_match(tmp_path / "local", MatchOptions(num_workers=1))
+    run_extract(images, tmp_path / "local", ExtractOptions(), LocalExecutor(1))
+    run_match(tmp_path / "local", MatchOptions(), LocalExecutor(1))
     with DaskExecutor(workers=2) as executor:
         run_extract(images, tmp_path / "dask", ExtractOptions(), executor)
         result = run_match(tmp_path / "dask", MatchOptions(), executor)

@@ -12,11 +12,15 @@ import numpy as np
 import pytest
 from _helpers_features import FAST, close_sets, read_db, textured, write
 
-from sfm.stages import extract as features
-from sfm.io.database import Database
+from sfm.cli import add_options, options_of
 from sfm.errors import InputError
-from sfm.stages.extract import ExtractOptions, extract_features, quantize_descriptors, run_extract
-from sfm.core.options import add_options, options_from_args
+from sfm.execution.local import LocalExecutor
+from sfm.features import extraction as features
+from sfm.features.extraction import extract_features
+from sfm.features.options import ExtractOptions
+from sfm.features.sift import quantize_descriptors
+from sfm.io.database import Database
+from sfm.stages.extract import run_extract
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -25,8 +29,8 @@ SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 def test_extract_counts_layout_and_rootsift(tmp_path):
     for i in range(3):
         write(tmp_path / "img" / f"im{i}.png", textured(480, 640, i))
-    opts = ExtractOptions(num_workers=1, max_num_features=500)
-    result = run_extract(tmp_path / "img", tmp_path / "ws", opts)
+    opts = ExtractOptions(max_num_features=500)
+    result = run_extract(tmp_path / "img", tmp_path / "ws", opts, LocalExecutor(1))
     assert (result.num_images, result.num_extracted, result.bad_files) == (3, 3, [])
     _, images, kps, descs = read_db(tmp_path / "ws")
     for name in images:
@@ -97,7 +101,6 @@ def test_max_num_features_keeps_the_largest_scale_locations_by_default():
 def test_describing_all_or_only_the_kept_keypoints_gives_the_same_features(monkeypatch):
     """Small images describe every detection, large ones only the kept keypoints (a second
     pyramid): the same keypoints and descriptors either way."""
-    import sfm.stages.extract as features
     import sfm.features.sift as sift
 
     img = cv2.cvtColor(textured(400, 400, 7), cv2.COLOR_BGR2GRAY)
@@ -136,7 +139,8 @@ def test_downscaled_keypoints_map_to_full_resolution(tmp_path):
     run_extract(
         tmp_path / "img",
         tmp_path / "ws",
-        ExtractOptions(num_workers=1, max_image_size=320, max_num_features=400),
+        ExtractOptions(max_image_size=320, max_num_features=400),
+        LocalExecutor(1),
     )
     cams, images, kps, _ = read_db(tmp_path / "ws")
     assert (cams[images["big.png"].camera_id].width, cams[images["big.png"].camera_id].height) == (
@@ -155,7 +159,7 @@ def test_sift_sees_only_the_downscaled_image(tmp_path, monkeypatch):
     big = cv2.resize(textured(300, 400, 5), (4000, 3000), interpolation=cv2.INTER_LINEAR)
     write(tmp_path / "img" / "big.jpg", big, quality=90)
     run_extract(
-        tmp_path / "img", tmp_path / "ws", ExtractOptions(num_workers=1, max_image_size=800)
+        tmp_path / "img", tmp_path / "ws", ExtractOptions(max_image_size=800), LocalExecutor(1)
     )
     assert seen == [(600, 800)]
     cams, images, kps, _ = read_db(tmp_path / "ws")
@@ -170,7 +174,7 @@ def test_very_large_image(tmp_path):
     big = np.tile(textured(480, 640, 9), (19, 19, 1))[:9000, :12000]
     write(tmp_path / "img" / "huge.jpg", big, quality=85)
     del big
-    result = run_extract(tmp_path / "img", tmp_path / "ws", ExtractOptions(num_workers=2))
+    result = run_extract(tmp_path / "img", tmp_path / "ws", ExtractOptions(), LocalExecutor(2))
     assert result.num_extracted == 1 and result.mean_keypoints > 2000
     _, _, kps, _ = read_db(tmp_path / "ws")
     assert kps["huge.jpg"][:, 0].max() > 11000 and kps["huge.jpg"][:, 1].max() > 8000
@@ -238,7 +242,9 @@ def test_resume_keeps_rows_and_checks_shared_camera_sizes(tmp_path):
 def test_interrupted_run_keeps_finished_images(tmp_path, monkeypatch):
     for i in range(4):
         write(tmp_path / "img" / f"im{i}.png", textured(240, 320, i))
-    real, calls = features._extract_job, []
+    import sfm.stages.extract as extract_stage
+
+    real, calls = extract_stage._extract_job, []
 
     def interrupted_at_third(job):
         calls.append(job.name)
@@ -246,9 +252,9 @@ def test_interrupted_run_keeps_finished_images(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(job)
 
-    monkeypatch.setattr(features, "_extract_job", interrupted_at_third)
+    monkeypatch.setattr(extract_stage, "_extract_job", interrupted_at_third)
     with pytest.raises(KeyboardInterrupt):
-        run_extract(tmp_path / "img", tmp_path / "ws", ExtractOptions(**FAST))
+        run_extract(tmp_path / "img", tmp_path / "ws", ExtractOptions(**FAST), LocalExecutor(1))
     assert not (tmp_path / "ws" / "database.db-wal").exists()
     _, images, kps, _ = read_db(tmp_path / "ws")
     assert sorted(images) == ["im0.png", "im1.png"] and all(len(k) for k in kps.values())
@@ -261,10 +267,10 @@ def test_worker_pool_gives_the_same_features(tmp_path):
     for i in range(3):
         write(tmp_path / "img" / f"im{i}.jpg", textured(240, 320, i))
     run_extract(
-        tmp_path / "img", tmp_path / "one", ExtractOptions(num_workers=1, max_num_features=300)
+        tmp_path / "img", tmp_path / "one", ExtractOptions(max_num_features=300), LocalExecutor(1)
     )
     result = run_extract(
-        tmp_path / "img", tmp_path / "two", ExtractOptions(num_workers=2, max_num_features=300)
+        tmp_path / "img", tmp_path / "two", ExtractOptions(max_num_features=300), LocalExecutor(2)
     )
     assert result.num_extracted == 3
     _, images1, kps1, descs1 = read_db(tmp_path / "one")
@@ -283,14 +289,14 @@ def test_options_make_cli_flags(tmp_path):
     args = parser.parse_args(
         ["--max-num-features", "100", "--no-root-sift", "--intrinsics", str(tmp_path / "K.txt")]
     )
-    opts = options_from_args(ExtractOptions, args)
+    opts = options_of(ExtractOptions, args)
     assert opts == ExtractOptions(
         max_num_features=100, root_sift=False, intrinsics=tmp_path / "K.txt"
     )
     assert all(a.help for a in parser._actions if a.dest in ExtractOptions.__dataclass_fields__)
     for mode in ["auto", "single", "per-folder", "per-image"]:
         args = parser.parse_args(["--camera-mode", mode])
-        assert options_from_args(ExtractOptions, args).camera_mode == mode
+        assert options_of(ExtractOptions, args).camera_mode == mode
     with pytest.raises(ValueError, match="camera_mode"):
         ExtractOptions(camera_mode="per-camera")
 
@@ -301,7 +307,7 @@ def test_lund_door_with_gt_intrinsics(tmp_path):
     if not (data / "images").is_dir():
         pytest.skip(f"lund_door not found at {data} (../shared/data beside the checkout)")
     opts = ExtractOptions(
-        num_workers=2, max_image_size=1000, intrinsics=data / "gt" / "cameras_gt_opencv.txt"
+        max_image_size=1000, intrinsics=data / "gt" / "cameras_gt_opencv.txt"
     )
     result = run_extract(data / "images", tmp_path / "ws", opts)
     assert (result.num_images, result.num_extracted, result.num_cameras, result.bad_files) == (

@@ -11,7 +11,8 @@ import pytest
 from _helpers_features import FAST, read_db, textured, write
 
 from sfm.errors import InputError
-from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.features.options import ExtractOptions
+from sfm.stages.extract import run_extract
 
 
 # ------------------------------------------------------------------------- cameras

@@ -11,8 +11,10 @@ import pytest
 from _helpers_features import FAST, close_sets, read_db, textured, write
 from PIL import Image
 
+from sfm.execution.local import LocalExecutor
 from sfm.errors import InputError
-from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.features.options import ExtractOptions
+from sfm.stages.extract import run_extract
 from sfm.io.image_files import find_images, focal_prior_from_exif, read_gray
 
 
@@ -25,7 +27,7 @@ def test_exif_orientation_gives_the_upright_image(tmp_path):
     write(tmp_path / "img" / "rotated.png", np.ascontiguousarray(np.rot90(stored, -1)))
     write(tmp_path / "img" / "tagged.jpg", stored, exif, quality=95)
     write(tmp_path / "img" / "tagged.tif", stored, tiffinfo={0x0112: 6})  # Pillow rotates TIFFs
-    run_extract(tmp_path / "img", tmp_path / "ws", ExtractOptions(num_workers=1))
+    run_extract(tmp_path / "img", tmp_path / "ws", ExtractOptions(), LocalExecutor(1))
     cams, images, kps, descs = read_db(tmp_path / "ws")
     for name in images:
         cam = cams[images[name].camera_id]

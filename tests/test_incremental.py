@@ -11,9 +11,11 @@ from sfm.cli import main
 from sfm.io.colmap_model import read_model
 from sfm.evaluation.metrics import evaluate, read_gt_table
 from sfm.mapper.incremental import reconstruct_incremental
-from sfm.mapper.payload import MapperOptions
-from sfm.stages.map import load_payloads, run_map
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.mapper.options import MapperOptions
+from sfm.stages.map import run_map
+from sfm.stages.payloads import load_payloads
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def test_orbit_with_outliers_is_fully_and_accurately_registered(tmp_path):

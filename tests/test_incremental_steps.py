@@ -8,17 +8,16 @@ import types
 import numpy as np
 
 import sfm.mapper.incremental as incremental
-from sfm.mapper.incremental import (
-    MAX_REFINEMENT_CHANGE,
-    _final_refinement,
-    _try_initial_pair,
-    two_view_score,
-)
+import sfm.mapper.initialization as initialization
 from sfm.mapper.bundle_adjuster import FINAL_TOLERANCE, GROWING_TOLERANCE
-from sfm.mapper.payload import MapperOptions
+from sfm.mapper.incremental import MAX_REFINEMENT_CHANGE, final_refinement
+from sfm.mapper.initialization import try_initial_pair, two_view_score
+from sfm.merge.refinement import refine_with_poses
+from sfm.mapper.options import MapperOptions
 from sfm.mapper.state import MapperState
-from sfm.stages.map import load_payloads
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.payloads import load_payloads
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def _full_search_winner(state: MapperState) -> tuple[int, int, int, list]:
@@ -26,14 +25,14 @@ def _full_search_winner(state: MapperState) -> tuple[int, int, int, list]:
     score, and the candidates (inliers, i, j) in search order."""
     opts = state.opts
     cands = sorted(((len(m), i, j, m) for (i, j), (m, config) in state.pair_matches.items()
-                    if config not in incremental.PLANAR_CONFIGS
+                    if config not in initialization.PLANAR_CONFIGS
                     and len(m) >= max(opts.abs_pose_min_num_inliers, opts.min_num_matches)),
                    key=lambda c: (-c[0], c[1], c[2]))  # fmt: skip
     if any(c[0] >= opts.init_min_num_inliers for c in cands):
         cands = [c for c in cands if c[0] >= opts.init_min_num_inliers]
     scored = []
     for _, i, j, m in cands[: opts.init_max_pairs]:
-        rel = incremental._relative_pose(state, i, j, m, opts.seed)
+        rel = initialization.relative_pose(state, i, j, m, opts.seed)
         if rel is not None:
             score, angle = two_view_score(state, i, j, rel[0], rel[1], m[rel[2]])
             if score >= opts.abs_pose_min_num_inliers and angle >= opts.init_min_tri_angle:
@@ -50,15 +49,15 @@ def test_initial_pair_search_stops_early_with_the_full_search_winner(tmp_path, m
     *expected, score, cands = _full_search_winner(MapperState(payload, opts))
 
     calls = []
-    original = incremental._relative_pose
+    original = initialization.relative_pose
 
     def counting(state, i, j, matches, seed):
         calls.append((i, j))
         return original(state, i, j, matches, seed)
 
-    monkeypatch.setattr(incremental, "_relative_pose", counting)
+    monkeypatch.setattr(initialization, "relative_pose", counting)
     state = MapperState(payload, opts)
-    assert _try_initial_pair(state, set())
+    assert try_initial_pair(state, set())
     assert tuple(np.flatnonzero(state.registered)) == tuple(sorted(expected))
     # every pair that could still have beaten the winner was tried, and no other
     assert calls == [(i, j) for n, i, j in cands if n >= score]
@@ -66,25 +65,32 @@ def test_initial_pair_search_stops_early_with_the_full_search_winner(tmp_path, m
 
 
 class _FakeState:
-    """What ``_final_refinement`` touches: records the final BAs' tolerances; each BA's last LM
-    iteration lowered the cost by ``decrease``; re-triangulation re-admits ``gain`` observations."""
+    """What ``final_refinement`` touches of the state: re-triangulation re-admits ``gain``
+    observations."""
 
-    def __init__(self, num_observations: int, gain: int, decrease: float) -> None:
+    def __init__(self, num_observations: int, gain: int) -> None:
         self.obs_inlier = np.zeros(num_observations + gain + 10, bool)
         self.obs_inlier[:num_observations] = True
-        self.gain, self.decrease, self.tolerances = gain, decrease, []
-        self.last_ba_decrease = 0.0
+        self.gain = gain
         self.payload = types.SimpleNamespace(label="C0")
-
-    def global_ba(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
-        assert final
-        self.tolerances.append(tolerance)
-        self.last_ba_decrease = self.decrease
 
     def retriangulate(self) -> int:
         start = int(self.obs_inlier.sum())
         self.obs_inlier[start : start + self.gain] = True
         return self.gain
+
+
+class _FakeAdjuster:
+    """Records the final BAs' tolerances; each BA's last LM iteration lowered the cost by
+    ``decrease``."""
+
+    def __init__(self, decrease: float) -> None:
+        self.decrease, self.tolerances, self.last_decrease = decrease, [], 0.0
+
+    def global_(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
+        assert final
+        self.tolerances.append(tolerance)
+        self.last_decrease = self.decrease
 
 
 def test_second_final_ba_when_retriangulation_changed_enough_or_the_first_stopped_early():
@@ -94,11 +100,11 @@ def test_second_final_ba_when_retriangulation_changed_enough_or_the_first_stoppe
     for gain, decrease, expected in ((0, converged, 1), (3, converged, 1), (limit, converged, 1),
                                      (limit + 1, converged, 2), (n // 100, converged, 2),
                                      (0, early, 2), (limit, early, 2)):
-        state = _FakeState(n, gain, decrease)
-        _final_refinement(state)
-        assert len(state.tolerances) == expected, (gain, decrease, state.tolerances)
+        adjuster = _FakeAdjuster(decrease)
+        final_refinement(_FakeState(n, gain), adjuster)
+        assert len(adjuster.tolerances) == expected, (gain, decrease, adjuster.tolerances)
         # the first stops at the growing model's tolerance; a second one at the final one
-        assert state.tolerances == [GROWING_TOLERANCE, FINAL_TOLERANCE][:expected]
+        assert adjuster.tolerances == [GROWING_TOLERANCE, FINAL_TOLERANCE][:expected]
 
 
 def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
@@ -118,11 +124,11 @@ def test_initial_pair_search_rule_on_a_table_of_scores(monkeypatch):
         start_model=lambda i, j, R, t: started.append((i, j)),
     )  # fmt: skip
     calls, started = [], []
-    monkeypatch.setattr(incremental, "_relative_pose",
+    monkeypatch.setattr(initialization, "relative_pose",
                         lambda st, i, j, m, seed: calls.append((i, j)) or (eye, t, np.ones(len(m), bool)))
-    monkeypatch.setattr(incremental, "two_view_score", lambda st, i, j, R, tt, m: table[(i, j)][1:])
-    monkeypatch.setattr(incremental, "ray_angles", lambda st, i, j, R, m: np.full(len(m), table[(i, j)][2]))
-    assert _try_initial_pair(state, set())
+    monkeypatch.setattr(initialization, "two_view_score", lambda st, i, j, R, tt, m: table[(i, j)][1:])
+    monkeypatch.setattr(initialization, "ray_angles", lambda st, i, j, R, m: np.full(len(m), table[(i, j)][2]))
+    assert try_initial_pair(state, set())
     assert started == [(1, 2)]
     assert calls == [(0, 1), (0, 2), (1, 2)]
 
@@ -139,11 +145,11 @@ def test_narrow_candidates_are_scored_only_when_the_angle_is_relaxed(monkeypatch
         pair_matches={p: (np.zeros((n, 2), np.int64), 2) for p, (n, _, _) in table.items()},
         start_model=lambda i, j, R, t: started.append((i, j)),
     )  # fmt: skip
-    monkeypatch.setattr(incremental, "_relative_pose", lambda st, i, j, m, seed: (eye, t, np.ones(len(m), bool)))
-    monkeypatch.setattr(incremental, "two_view_score",
+    monkeypatch.setattr(initialization, "relative_pose", lambda st, i, j, m, seed: (eye, t, np.ones(len(m), bool)))
+    monkeypatch.setattr(initialization, "two_view_score",
                         lambda st, i, j, R, tt, m: scored.append((i, j)) or table[(i, j)][1:])
-    monkeypatch.setattr(incremental, "ray_angles", lambda st, i, j, R, m: np.full(len(m), table[(i, j)][2]))
-    assert _try_initial_pair(state, set())
+    monkeypatch.setattr(initialization, "ray_angles", lambda st, i, j, R, m: np.full(len(m), table[(i, j)][2]))
+    assert try_initial_pair(state, set())
     assert scored == [(1, 2), (0, 1), (0, 2)]  # (1, 2) at once (14 >= 12.8), the others deferred
     assert started == [(0, 1)]  # none reaches 16 deg; at 8 deg the highest score wins
 
@@ -153,8 +159,8 @@ def test_ray_angles_are_the_triangulation_angles(tmp_path):
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
     state = MapperState(payload, MapperOptions())
     (i, j), (m, _) = max(state.pair_matches.items(), key=lambda kv: len(kv[1][0]))
-    R, t, inl = incremental._relative_pose(state, i, j, m, 0)
-    rays = incremental.ray_angles(state, i, j, R, m[inl])
+    R, t, inl = initialization.relative_pose(state, i, j, m, 0)
+    rays = initialization.ray_angles(state, i, j, R, m[inl])
     _, median = two_view_score(state, i, j, R, t, m[inl])
     assert rays.min() >= 0 and np.median(rays) > 1.0
     assert abs(np.median(rays) - median) < 0.02 * median
@@ -165,7 +171,7 @@ def test_a_stalled_model_retries_failed_images_that_see_any_more_points(tmp_path
     run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=4))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
     state = MapperState(payload, MapperOptions())
-    assert _try_initial_pair(state, set())
+    assert try_initial_pair(state, set())
     k = state.next_image_candidates()[0]
     seen = len(state.visible_points(k)[0])
     state.note_failure(k, seen - 1)  # failed when it saw one point fewer
@@ -190,9 +196,9 @@ def test_every_bundle_adjustment_weighs_by_keypoint_scale(tmp_path, monkeypatch)
     seen = []
     original = mapper_ba.bundle_adjust_partitioned
 
-    def spy(*args, obs_sigma=None, **kwargs):
-        seen.append((np.asarray(args[8]).copy(), obs_sigma))  # obs_xy, sigmas
-        return original(*args, obs_sigma=obs_sigma, **kwargs)
+    def spy(problem, *args, **kwargs):
+        seen.append((np.asarray(problem.obs_xy).copy(), problem.obs_sigma))
+        return original(problem, *args, **kwargs)
 
     monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
     [model] = incremental.reconstruct_incremental(payload, MapperOptions())
@@ -218,10 +224,9 @@ def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_p
     seen = []
     original = mapper_ba.bundle_adjust_partitioned
 
-    def spy(*args, **kwargs):
-        options = args[10]
+    def spy(problem, num_parts, options, **kwargs):
         seen.append((options.optimizer, options.loss, options.loss_scale, options.refine_intrinsics))
-        return original(*args, **kwargs)
+        return original(problem, num_parts, options, **kwargs)
 
     monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
     for opts, local, glob in ((MapperOptions(), 1.0, 4.0),
@@ -241,7 +246,7 @@ def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_p
         seen.clear()  # the refinement of merged poses keeps the local scale
         poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation)
                  for im in model.images.values()}
-        refined = incremental.refine_with_poses(payload, opts, poses, {})
+        refined = refine_with_poses(payload, opts, poses, {})
         assert len(refined.images) == 14 and seen
         assert all(optimizer == "lm" and scale == local for optimizer, _, scale, _ in seen), seen
 

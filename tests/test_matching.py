@@ -8,11 +8,15 @@ import shutil
 import numpy as np
 import pytest
 
+from sfm.execution.local import LocalExecutor
 from sfm.core.camera_models import project
 from sfm.io.database import Database
 from sfm.errors import InputError
 from sfm.core.geometry import look_at, quaternion_to_rotation, rotation_angle_deg
-from sfm.stages.match import MatchOptions, match_descriptors, normalize_descriptors, run_match
+from sfm.matching.options import MatchOptions
+from sfm.matching.descriptors import match_descriptors
+from sfm.matching.descriptors import normalize_descriptors
+from sfm.stages.match import run_match
 from sfm.matching.pairs import exhaustive_pairs, select_pairs, sequential_pairs
 
 
@@ -225,8 +229,8 @@ def test_run_match_verifies_overlapping_pairs_deterministically_and_resumes(tmp_
     (tmp_path / "a").mkdir()
     rotations = write_two_cluster_database(tmp_path / "a" / "database.db")
     shutil.copytree(tmp_path / "a", tmp_path / "b")
-    serial = run_match(tmp_path / "a", MatchOptions(num_workers=1, seed=3))
-    run_match(tmp_path / "b", MatchOptions(num_workers=2, seed=3))  # the process pool
+    serial = run_match(tmp_path / "a", MatchOptions(seed=3), LocalExecutor(1))
+    run_match(tmp_path / "b", MatchOptions(seed=3), LocalExecutor(2))  # the process pool
     for ws in ("a", "b"):  # closed and checkpointed: complete on its own
         assert not (tmp_path / ws / "database.db-wal").exists()
     assert serial.num_images == 5 and serial.num_pairs_considered == 10
@@ -246,7 +250,7 @@ def test_run_match_verifies_overlapping_pairs_deterministically_and_resumes(tmp_
     for a, b in verified:  # relative rotations are the true ones
         c2_from_c1 = rotations[b] @ rotations[a].T
         assert rotation_angle_deg(quaternion_to_rotation(ga[(a, b)][0].qvec) @ c2_from_c1.T) < 0.5
-    again = run_match(tmp_path / "a", MatchOptions(num_workers=1, seed=3))
+    again = run_match(tmp_path / "a", MatchOptions(seed=3), LocalExecutor(1))
     assert again.num_pairs_skipped_existing == 10 and again.num_pairs_processed == 0
     assert again.num_verified == 4
 
@@ -256,7 +260,7 @@ def test_run_match_skips_images_without_keypoints(tmp_path, caplog):
     with Database(tmp_path / "database.db") as db:
         db.add_image("empty.png", 1)
     with caplog.at_level(logging.WARNING, logger="sfm.stages.match"):
-        result = run_match(tmp_path, MatchOptions(num_workers=1, sequential=1))
+        result = run_match(tmp_path, MatchOptions(sequential=1), LocalExecutor(1))
     assert "empty.png has no keypoints" in caplog.text
     assert result.num_images == 5 and result.num_pairs_considered == 10
 

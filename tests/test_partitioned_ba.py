@@ -9,7 +9,8 @@ import pytest
 from _helpers_bundle_adjustment import perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
-from backend.bundle_adjustment import BAOptions, bundle_adjust
+from backend.ba_problem import BAOptions, BAProblem
+from backend.bundle_adjustment import bundle_adjust
 from backend.partitioned_ba import bundle_adjust_partitioned
 
 OPTIONS = BAOptions(loss="none", relative_tolerance=1e-10, absolute_tolerance=0.0, gauge_pose=0)
@@ -25,10 +26,10 @@ def rotation_gaps(a, b) -> np.ndarray:
 def test_exact_observations_give_the_truth():
     truth = ring_scene(LONG_FOCAL, n_images=8, n_points=240)
     start = perturb(truth, keep=(0,))
-    result = bundle_adjust_partitioned(**start, num_parts=3, options=OPTIONS)
+    result = bundle_adjust_partitioned(BAProblem(**start), num_parts=3, options=OPTIONS)
     assert rotation_gaps(result, replace_truth(truth)).max() < 1e-6
     assert np.allclose(result.camera_params[0], truth["camera_params"][0], rtol=1e-7, atol=1e-9)
-    full = bundle_adjust(**start, options=OPTIONS)  # same gauge: the anchor pose and its scale prior
+    full = bundle_adjust(BAProblem(**start), options=OPTIONS)  # same gauge: the anchor pose and its scale prior
     assert np.abs(result.points - full.points).max() < 1e-6
     assert np.abs(result.translations - full.translations).max() < 1e-6
     assert result.final_rms < 1e-6 and result.num_observations == len(truth["obs_image"])
@@ -46,11 +47,10 @@ def test_the_mean_of_the_parts_is_near_the_full_bundle_adjustment(seed):
     for the poses and for focal length and distortion."""
     truth = ring_scene(LONG_FOCAL, n_images=12, n_points=900, noise=1.0, seed=seed)
     start = perturb(truth, seed=seed, keep=(0,))
-    full = bundle_adjust(**start, options=OPTIONS)
-    consensus = bundle_adjust_partitioned(**start, num_parts=3, options=OPTIONS, seed=seed)
+    full = bundle_adjust(BAProblem(**start), options=OPTIONS)
+    consensus = bundle_adjust_partitioned(BAProblem(**start), num_parts=3, options=OPTIONS, seed=seed)
     third = np.isin(start["obs_point"], np.arange(0, 900, 3))
-    part = bundle_adjust(**{**start, **{k: start[k][third] for k in ("obs_image", "obs_point", "obs_xy")}},
-                         options=OPTIONS)
+    part = bundle_adjust(BAProblem(**{**start, **{k: start[k][third] for k in ("obs_image", "obs_point", "obs_xy")}}), options=OPTIONS)
     assert rotation_gaps(consensus, full).max() < 0.5 * rotation_gaps(part, full).max()
     gap_part = np.abs(part.camera_params[0] - full.camera_params[0])
     gap_consensus = np.abs(consensus.camera_params[0] - full.camera_params[0])
@@ -63,7 +63,7 @@ def test_fixed_poses_and_unseen_images_are_returned_as_given():
     start = perturb(truth, keep=(0, 1))
     seen = start["obs_image"] != 7  # image 7 has no observation
     start = {**start, **{k: start[k][seen] for k in ("obs_image", "obs_point", "obs_xy")}}
-    result = bundle_adjust_partitioned(**start, num_parts=2, options=replace(OPTIONS, fixed_poses=(0, 1), gauge_pose=None))
+    result = bundle_adjust_partitioned(BAProblem(**start, fixed_poses=(0, 1)), num_parts=2, options=replace(OPTIONS, gauge_pose=None))
     for i in (0, 1, 7):
         assert np.array_equal(result.rotations[i], start["rotations"][i])
         assert np.array_equal(result.translations[i], start["translations"][i])
@@ -72,8 +72,8 @@ def test_fixed_poses_and_unseen_images_are_returned_as_given():
 
 def test_one_part_is_the_plain_bundle_adjustment():
     start = perturb(ring_scene(LONG_FOCAL, n_images=6, n_points=120, noise=0.5))
-    one = bundle_adjust_partitioned(**start, num_parts=1, options=OPTIONS)
-    plain = bundle_adjust(**start, options=OPTIONS)
+    one = bundle_adjust_partitioned(BAProblem(**start), num_parts=1, options=OPTIONS)
+    plain = bundle_adjust(BAProblem(**start), options=OPTIONS)
     assert np.array_equal(one.rotations, plain.rotations) and np.array_equal(one.points, plain.points)
 
 
@@ -87,9 +87,9 @@ def test_observation_sigmas_reach_every_part():
     corrupted = {**truth, "obs_xy": truth["obs_xy"] + 20.0 * bad[:, None]}
     start = perturb(corrupted, keep=(0,))
     sigma = np.where(bad, 1000.0, 1.0)
-    weighted = bundle_adjust_partitioned(**start, num_parts=2, options=OPTIONS, obs_sigma=sigma)
-    plain = bundle_adjust_partitioned(**start, num_parts=2, options=OPTIONS)
+    weighted = bundle_adjust_partitioned(BAProblem(**start, obs_sigma=sigma), num_parts=2, options=OPTIONS)
+    plain = bundle_adjust_partitioned(BAProblem(**start), num_parts=2, options=OPTIONS)
     assert rotation_gaps(weighted, replace_truth(truth)).max() < 0.01
     assert rotation_gaps(plain, replace_truth(truth)).max() > 0.05
     with pytest.raises(ValueError, match="obs_sigma"):
-        bundle_adjust_partitioned(**start, num_parts=2, options=OPTIONS, obs_sigma=sigma[:-1])
+        bundle_adjust_partitioned(BAProblem(**start, obs_sigma=sigma[:-1]), num_parts=2, options=OPTIONS)

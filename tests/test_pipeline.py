@@ -12,7 +12,8 @@ from sfm.cli import main
 from sfm.io.colmap_model import read_model
 from sfm.evaluation.metrics import evaluate, read_gt_table
 from sfm.viz.recorder import entity_paths
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def test_reconstruct_from_database_with_clusters(tmp_path):
@@ -42,7 +43,7 @@ def test_python_api_and_unknown_option(tmp_path):
     run_synth(tmp_path, SynthOptions(num_images=16, observations_per_image=400, seed=2))
     models, report = reconstruct(None, tmp_path, workers=1, seed=0, max_cluster_size=100)
     assert len(models) == 1 and len(models[0].images) == 16 and report["num_clusters"] == 1
-    with pytest.raises(TypeError, match="unknown option"):
+    with pytest.raises(ValueError, match=r"unknown option 'max_clustr_size' \(did you mean 'max_cluster_size'\?\)"):
         make_options(max_clustr_size=5)
 
 

@@ -9,7 +9,8 @@ import pytest
 from _helpers_bundle_adjustment import perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
-from backend.bundle_adjustment import BAOptions, bundle_adjust
+from backend.ba_problem import BAOptions, BAProblem
+from backend.bundle_adjustment import bundle_adjust
 from backend.gtsam_solver import predicted_rest
 
 
@@ -30,13 +31,13 @@ def test_predictive_stop_skips_the_confirming_iteration(optimizer, keep, refine)
     before the relative tolerance would, with that iteration's values (those of a run capped
     there), not the start's."""
     start = perturb(ring_scene(noise=0.5, seed=5), keep=keep)
-    base = BAOptions(fixed_poses=keep if len(keep) > 1 else (), refine_intrinsics=refine, optimizer=optimizer,
-                     relative_tolerance=1e-3)
-    plain = bundle_adjust(**start, options=base)
-    early = bundle_adjust(**start, options=replace(base, predictive_stop=True))
+    base = BAOptions(refine_intrinsics=refine, optimizer=optimizer, relative_tolerance=1e-3)
+    problem = BAProblem(**start, fixed_poses=keep if len(keep) > 1 else ())
+    plain = bundle_adjust(problem, options=base)
+    early = bundle_adjust(problem, options=replace(base, predictive_stop=True))
     assert early.success and early.converged
     assert 2 <= early.iterations < plain.iterations
-    capped = bundle_adjust(**start, options=replace(base, max_iterations=early.iterations))
+    capped = bundle_adjust(problem, options=replace(base, max_iterations=early.iterations))
     np.testing.assert_array_equal(early.points, capped.points)
     np.testing.assert_array_equal(early.rotations, capped.rotations)
     assert early.final_rms == capped.final_rms

@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 
 from sfm.evaluation.metrics import read_gt_table
-from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+from sfm.synthetic.options import RenderOptions
+from sfm.synthetic.rendered import write_rendered_scene
 
 
 def test_rendered_images_match_their_ground_truth(tmp_path):

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+from sfm.synthetic.options import RenderOptions
+from sfm.synthetic.rendered import write_rendered_scene
 
 NUM_IMAGES = 16
 PAIRS = NUM_IMAGES * (NUM_IMAGES - 1) // 2  # exhaustive matching
@@ -107,7 +108,7 @@ def test_killed_in_every_stage_resumes_to_the_same_model(images, reference, tmp_
     ws = tmp_path / "ws"
     pairs = PAIRS
     # One extraction process, so the database fills image by image.
-    slow = ("--num-workers", "1")
+    slow = ("--workers", "1")
     run_and_kill(images, ws, lambda w: 0 < count(w, "keypoints") < NUM_IMAGES, "extracting", *slow)
     kept = count(ws, "keypoints")
     log = run_and_kill(images, ws, lambda w: 0 < count(w, "two_view_geometries") < pairs, "matching", *slow)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from sfm.evaluation.metrics import read_gt_table
-from sfm.mapper.incremental import _relative_pose
-from sfm.mapper.payload import MapperOptions
+from sfm.mapper.options import MapperOptions
 from sfm.mapper.state import MapperState
-from sfm.stages.map import load_payloads
+from sfm.stages.payloads import load_payloads
 from sfm.mapper.structureless import register_structureless
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -41,7 +41,7 @@ def test_structureless_registration_recovers_pose_and_baseline(tmp_path):
     state.track_valid[valid[np.arange(len(valid)) % 10 != 0]] = False  # too few points for PnP
     baseline = np.linalg.norm(_center(gt[state.names[seeds[0]]]) - _center(gt[state.names[seeds[1]]]))
     for _ in range(3):
-        assert register_structureless(state, _relative_pose)
+        assert register_structureless(state)
         k = state.last_registered
         assert k not in seeds
         truth = gt[state.names[k]]
@@ -57,7 +57,7 @@ def test_structureless_registration_needs_a_registered_neighbour(tmp_path):
     run_synth(tmp_path, SynthOptions(scene="street", num_images=6, observations_per_image=400, seed=4))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
     state = MapperState(payload, MapperOptions())
-    assert not register_structureless(state, _relative_pose)  # nothing registered yet
+    assert not register_structureless(state)  # nothing registered yet
 
 
 def test_structureless_registration_takes_images_pnp_failed_on_and_leaves_untried_ones(tmp_path):
@@ -70,10 +70,10 @@ def test_structureless_registration_takes_images_pnp_failed_on_and_leaves_untrie
     for i in range(len(state.names)):  # only the PnP-ready images are left
         if not state.registered[i] and i not in rich:
             state.used[i] = True
-    assert not register_structureless(state, _relative_pose)  # PnP has not tried them
+    assert not register_structureless(state)  # PnP has not tried them
     k = rich[0]
     state.note_failure(k, len(state.visible_points(k)[0]))
-    assert register_structureless(state, _relative_pose)
+    assert register_structureless(state)
     assert state.last_registered == k
     truth = gt[state.names[k]]
     assert _rotation_deg(state.R[k], truth.rotation) < 0.1

@@ -8,7 +8,10 @@ import pytest
 from sfm.io.database import Database, TwoViewConfig
 from sfm.evaluation.metrics import evaluate, read_gt_table
 from sfm.core.geometry import rotation_about_axis
-from sfm.synthetic.scenes import SynthOptions, gt_reconstruction, make_scene, run_synth
+from sfm.errors import InputError
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
+from sfm.synthetic.scenes import gt_reconstruction, make_scene
 from sfm.synthetic.matching import essential_matrix, simulate_matching
 
 
@@ -106,7 +109,7 @@ def test_run_synth_database_and_gt(tmp_path):
     gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")
     assert sorted(gt) == scene.names
     np.testing.assert_allclose(gt[scene.names[4]].rotation, scene.rotations[4], atol=1e-12)
-    with pytest.raises(FileExistsError):
+    with pytest.raises(InputError, match="exists"):
         run_synth(tmp_path, opts)
 
 

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+from sfm.synthetic.options import RenderOptions
+from sfm.synthetic.rendered import write_rendered_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 

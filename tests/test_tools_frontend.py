@@ -8,13 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sfm.execution.local import LocalExecutor
 from sfm.io.database import Database
 from sfm.io.database_schema import TwoViewGeometry
-from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.features.options import ExtractOptions
+from sfm.stages.extract import run_extract
 from sfm.core.geometry import look_at
 from sfm.evaluation.ground_truth import GTPose, read_gt_table
-from sfm.stages.match import MatchOptions, run_match
-from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+from sfm.matching.options import MatchOptions
+from sfm.stages.match import run_match
+from sfm.synthetic.options import RenderOptions
+from sfm.synthetic.rendered import write_rendered_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from check_matches import (
@@ -121,8 +125,8 @@ def rendered_workspace(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, 
     root = tmp_path_factory.mktemp("rendered")
     info = write_rendered_scene(root, RenderOptions(num_images=4, texture_size=512))
     work = root / "work"
-    run_extract(Path(info["image_dir"]), work, ExtractOptions(num_workers=1))
-    run_match(work, MatchOptions(pairs="exhaustive", num_workers=1))
+    run_extract(Path(info["image_dir"]), work, ExtractOptions(), LocalExecutor(1))
+    run_match(work, MatchOptions(pairs="exhaustive"), LocalExecutor(1))
     return work, Path(info["gt_table"])
 
 

@@ -50,7 +50,8 @@ def test_a_stopped_run_resumes_from_its_snapshot_to_the_end(tmp_path, monkeypatc
     """COLMAP stopped after 2 s and resumed gives the complete model, with the time of both
     segments; progress lines stay in order across the resume."""
     pytest.importorskip("pycolmap")
-    from sfm.synthetic.scenes import SynthOptions, run_synth
+    from sfm.stages.synth import run_synth
+    from sfm.synthetic.options import SynthOptions
 
     run_synth(tmp_path / "data", SynthOptions(scene="orbit", num_images=60, outlier_ratio=0.2, seed=0))
     db, work = tmp_path / "data" / "database.db", tmp_path / "work"
@@ -78,7 +79,8 @@ def test_a_run_killed_in_its_final_refinement_resumes_to_a_refined_model(tmp_pat
     import numpy as np
     import pycolmap
 
-    from sfm.synthetic.scenes import SynthOptions, run_synth
+    from sfm.stages.synth import run_synth
+    from sfm.synthetic.options import SynthOptions
 
     run_synth(tmp_path / "data", SynthOptions(scene="orbit", num_images=40, outlier_ratio=0.2, seed=0))
     db, work = tmp_path / "data" / "database.db", tmp_path / "work"

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from sfm.core.geometry import look_at
-from sfm.synthetic.scenes import SynthOptions, make_scene
+from sfm.synthetic.options import SynthOptions
+from sfm.synthetic.scenes import make_scene
 from sfm.synthetic.matching import simulate_matching
 from sfm.mapper.tracks import _conflict_free_components, _triangle_support, build_tracks
 from sfm.mapper.triangulation import depths, max_triangulation_angles, triangulate_dlt

@@ -40,10 +40,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from check_matches import check_matches
 
 from sfm.io.database import Database
-from sfm.stages.extract import ExtractOptions, run_extract
+from sfm.features.options import ExtractOptions
+from sfm.stages.extract import run_extract
 from sfm.evaluation.ground_truth import read_gt_table
 from sfm.features.cameras import read_intrinsics
-from sfm.stages.match import MatchOptions, run_match
+from sfm.matching.options import MatchOptions
+from sfm.stages.match import run_match
 
 MIN_INLIERS = 15
 

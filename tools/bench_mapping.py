@@ -23,13 +23,14 @@ from pathlib import Path
 
 import cv2  # noqa: F401 - same reason
 
-from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.clustering.options import ClusterOptions
+from sfm.stages.cluster import run_cluster
 from sfm.io.colmap_model import read_model
 from sfm.evaluation.metrics import evaluate, read_gt_table
 from sfm.execution.local import LocalExecutor
-from sfm.mapper.payload import MapperOptions
+from sfm.mapper.options import MapperOptions
 from sfm.stages.map import run_map
-from sfm.merge.cluster_graph import MergeOptions
+from sfm.merge.options import MergeOptions
 from sfm.stages.merge import run_merge
 
 

@@ -106,7 +106,7 @@ def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> in
     from bench_mapping import row, run_colmap, run_graphsfm
     from resumable_colmap import run_incremental
 
-    from sfm.stages.cluster import ClusterOptions
+    from sfm.clustering.options import ClusterOptions
     from sfm.evaluation.metrics import read_gt_table
 
     logging.basicConfig(level=logging.WARNING)
@@ -256,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.sizes:
         data = out / "data" / str(n)
         if not (data / "database.db").exists() and not args.report_only:
-            from sfm.synthetic.scenes import SynthOptions, run_synth
+            from sfm.stages.synth import run_synth
+            from sfm.synthetic.options import SynthOptions
 
             shutil.rmtree(data, ignore_errors=True)
             run_synth(data, SynthOptions(scene="aerial", num_images=n, outlier_ratio=0.2, seed=0))

@@ -20,11 +20,13 @@ import sys
 import time
 from pathlib import Path
 
-from sfm.stages.cluster import ClusterOptions, run_cluster
+from sfm.clustering.options import ClusterOptions
+from sfm.stages.cluster import run_cluster
 from sfm.execution.local import LocalExecutor
-from sfm.mapper.payload import MapperOptions
+from sfm.mapper.options import MapperOptions
 from sfm.stages.map import run_map
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def time_map(workspace: Path, executor) -> dict:

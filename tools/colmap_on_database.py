@@ -25,7 +25,8 @@ import cv2  # noqa: F401 - same reason
 
 from sfm.io.colmap_model import read_model
 from sfm.evaluation.metrics import evaluate, read_gt_table
-from sfm.synthetic.scenes import SynthOptions, run_synth
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
 
 
 def run_colmap_incremental(workspace: Path, num_threads: int = -1, quiet: bool = True) -> tuple[Path | None, float]:

@@ -1,10 +1,25 @@
-"""Executors: where each cluster's local SfM runs (DESIGN.md, "Execution").
+"""Running a stage's independent tasks on this machine, in a process pool.
 
-A cluster's local SfM is the pure function :func:`map_cluster`: a self-contained
-:class:`~sfm.mapper.payload.MapperInput` payload (no paths into the caller's disk) in, local models
-out.  :class:`LocalExecutor` runs payloads in a process pool (workers = cores by default) with a
-progress bar; one worker runs in-process so the Rerun recording can show the model growing.  A
-distributed executor (Dask) implements the same ``run`` interface.
+Every parallel stage (extract: one task per image; match: one per batch of pairs; map: one per
+cluster, the paper's "local SfM in parallel", section 3.2) hands its tasks to an executor's
+:meth:`~LocalExecutor.map`.  Two executors implement it: :class:`LocalExecutor` (this machine)
+and :class:`sfm.execution.dask_cluster.DaskExecutor` (a Dask cluster, other machines).  What a
+stage needs to know of where its tasks run is one attribute, ``remote``: remote workers cannot
+read this machine's files, so their tasks must carry their data (image bytes, feature arrays)
+instead of paths.
+
+``map(func, items, ordered=..., errors=..., max_workers=...)`` yields one :class:`TaskResult` per
+item: in input order (``ordered=True``: extraction and matching write the database in a fixed
+order, so any number of workers gives the same files) or as tasks finish.  At most two tasks
+per worker are in flight, so lazily built items (image bytes, cluster payloads) are built only
+when a worker is about to need them.  A task that raises either stops the map
+(``errors="raise"``) or becomes a :class:`TaskResult` with its ``error`` (``errors="return"``: a
+failed cluster must not stop the others).  A worker process that dies (killed by the kernel for
+memory, say) raises :class:`WorkerDied`.
+
+Each worker process runs one task at a time with OpenCV's and BLAS's own threads limited to one
+(:func:`single_threaded`): the parallelism is across processes.  One worker runs the tasks in
+this process.
 """
 
 from __future__ import annotations
@@ -12,53 +27,111 @@ from __future__ import annotations
 import logging
 import os
 import socket
-from collections.abc import Iterator, Sequence
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from typing import Any
 
-from tqdm import tqdm
-
-from sfm.mapper.incremental import reconstruct_incremental
-from sfm.mapper.payload import MapperInput, MapperOptions
-from sfm.core.model import Reconstruction
 from sfm.execution.process_pool import pool_context
-from sfm.viz.recorder import Recorder
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
-class ClusterResult:
-    """Local models of one payload (largest first), where it ran, or the error that stopped it."""
+class TaskResult:
+    """The outcome of one task: its position in the input, its value (None when it failed),
+    the error that stopped it (``"ExceptionType: message"``, with ``errors="return"``) and the
+    worker that ran it (``host:pid`` here, the worker's address on Dask)."""
 
     index: int
-    models: list[Reconstruction]
-    worker: str
+    value: Any = None
     error: str | None = None
+    worker: str = ""
+
+
+class WorkerDied(RuntimeError):
+    """A worker process died while running tasks (killed by the kernel, say for memory)."""
 
 
 def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def map_cluster(payload: MapperInput, options: MapperOptions) -> tuple[list[Reconstruction], str]:
-    """The pure local-SfM task: payload -> (models, worker).  Safe in any worker process."""
+def single_threaded() -> None:
+    """Limit OpenCV's and BLAS's thread pools to one thread in this process: each worker runs
+    one task, and several workers' thread pools would fight over the cores."""
     import cv2
 
     cv2.setNumThreads(1)
-    return reconstruct_incremental(payload, options), worker_name()
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
+        pass
+
+
+def run_task(func: Callable[[Any], Any], item: Any, catch: bool) -> tuple[Any, str | None, str]:
+    """``func(item)`` as ``(value, error, worker)``: with ``catch``, an exception becomes its
+    one-line description (details in the log) instead of propagating."""
+    if not catch:
+        return func(item), None, worker_name()
+    try:
+        return func(item), None, worker_name()
+    except Exception as exc:  # noqa: BLE001 - reported as this task's failure
+        log.debug("task failed\n%s", traceback.format_exc())
+        return None, f"{type(exc).__name__}: {exc}", worker_name()
 
 
 class LocalExecutor:
-    """Runs payloads on this machine: in-process for one worker, else a process pool."""
+    """Runs tasks in a pool of ``workers`` processes on this machine (0: one per core), or in
+    this process when one worker is enough."""
 
     name = "local"
+    remote = False
+    address = None
 
     def __init__(self, workers: int = 0) -> None:
-        self.workers = workers if workers > 0 else (os.cpu_count() or 1)
+        if workers < 0:
+            raise ValueError(f"workers must be >= 0 (0: one per core), got {workers}")
+        self.workers = workers or len(os.sched_getaffinity(0))
+
+    def runs_in_process(self, num_items: int, max_workers: int = 0) -> bool:
+        """Whether :meth:`map` of ``num_items`` items would run them in this process."""
+        return self._pool_size(num_items, max_workers) <= 1
+
+    def _pool_size(self, num_items: int, max_workers: int) -> int:
+        return min(self.workers, max_workers or self.workers, max(num_items, 1))
+
+    def map(self, func: Callable[[Any], Any], items: Iterable[Any], *, num_items: int | None = None,
+            ordered: bool = True, errors: str = "raise", max_workers: int = 0) -> Iterator[TaskResult]:
+        """``func`` over ``items`` (module docstring).  ``num_items``: how many items there are,
+        when ``items`` has no ``len``."""
+        if errors not in ("raise", "return"):
+            raise ValueError(f"errors must be 'raise' or 'return', got {errors!r}")
+        count = len(items) if num_items is None else num_items  # type: ignore[arg-type]
+        catch = errors == "return"
+        size = self._pool_size(count, max_workers)
+        if size <= 1:
+            for index, item in enumerate(items):
+                value, error, worker = run_task(func, item, catch)
+                yield TaskResult(index, value, error, worker)
+            return
+        pool = ProcessPoolExecutor(size, mp_context=pool_context(), initializer=single_threaded)
+        finished = False
+        try:
+            yield from _pooled(pool, func, items, 2 * size, ordered, catch)
+            finished = True
+        except BrokenProcessPool as exc:
+            raise WorkerDied("a worker process died (out of memory?)") from exc
+        finally:
+            pool.shutdown(wait=finished, cancel_futures=True)
 
     def close(self) -> None:
-        """Nothing to close: each ``run`` opens and closes its own pool."""
+        """Nothing to close: each :meth:`map` opens and closes its own pool."""
 
     def __enter__(self) -> LocalExecutor:
         return self
@@ -66,56 +139,37 @@ class LocalExecutor:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def run(self, payloads: Sequence[MapperInput], options: MapperOptions,
-            recorder: Recorder | None = None) -> Iterator[ClusterResult]:
-        """Yield one :class:`ClusterResult` per payload as they finish (any order)."""
-        bar = tqdm(total=len(payloads), desc="local SfM", unit="cluster", disable=None)
-        if self.workers == 1 or len(payloads) == 1:
-            for k, payload in enumerate(payloads):
-                try:
-                    models = reconstruct_incremental(payload, options, recorder)
-                    yield ClusterResult(k, models, worker_name())
-                except Exception as exc:  # noqa: BLE001 - one failed cluster must not stop the run
-                    log.warning("cluster %s failed: %s", payload.label, exc)
-                    yield ClusterResult(k, [], worker_name(), f"{type(exc).__name__}: {exc}")
-                bar.update()
-            bar.close()
-            return
-        # Largest payloads first, so the pool is not left waiting on one big straggler; one
-        # payload queued ahead per worker (each is read and pickled only then: memory).
-        sizes, labels = payload_sizes(payloads), payload_labels(payloads)
-        pending = iter(sorted(range(len(payloads)), key=lambda k: -sizes[k]))
-        with ProcessPoolExecutor(max_workers=min(self.workers, len(payloads)), mp_context=pool_context()) as pool:
-            futures: dict = {}
 
-            def submit_next() -> None:
-                k = next(pending, None)
-                if k is not None:
-                    futures[pool.submit(map_cluster, payloads[k], options)] = k
+def _pooled(pool: ProcessPoolExecutor, func, items: Iterable[Any], window: int, ordered: bool,
+            catch: bool) -> Iterator[TaskResult]:
+    """Submit ``items`` with at most ``window`` in flight; yield results in input order or as
+    they finish."""
+    source = enumerate(items)
+    in_flight: dict = {}
+    order: deque = deque()
 
-            for _ in range(2 * self.workers):
-                submit_next()
-            while futures:
-                done, _ = wait(futures, return_when=FIRST_COMPLETED)
-                for future in done:
-                    k = futures.pop(future)
-                    submit_next()
-                    try:
-                        models, worker = future.result()
-                        yield ClusterResult(k, models, worker)
-                    except Exception as exc:  # noqa: BLE001
-                        log.warning("cluster %s failed: %s", labels[k], exc)
-                        yield ClusterResult(k, [], "", f"{type(exc).__name__}: {exc}")
-                    bar.update()
-        bar.close()
+    def submit_next() -> bool:
+        nxt = next(source, None)
+        if nxt is None:
+            return False
+        future = pool.submit(run_task, func, nxt[1], catch)
+        in_flight[future] = nxt[0]
+        order.append(future)
+        return True
 
-
-def payload_sizes(payloads: Sequence[MapperInput]) -> list[int]:
-    """Images per payload, without reading a lazy sequence (``sfm.stages.map.ClusterPayloads``)."""
-    sizes = getattr(payloads, "sizes", None)
-    return list(sizes) if sizes is not None else [len(p.names) for p in payloads]
-
-
-def payload_labels(payloads: Sequence[MapperInput]) -> list[str]:
-    labels = getattr(payloads, "labels", None)
-    return list(labels) if labels is not None else [p.label for p in payloads]
+    while len(in_flight) < window and submit_next():
+        pass
+    while in_flight:
+        if ordered:
+            future = order.popleft()
+            future.result()  # wait for the oldest
+            done = [future]
+        else:
+            done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
+        for future in done:
+            index = in_flight.pop(future)
+            if not ordered:
+                order.remove(future)
+            value, error, worker = future.result()
+            submit_next()
+            yield TaskResult(index, value, error, worker)

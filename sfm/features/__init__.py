@@ -1,1 +1,1 @@
-"""sfm.stages.extract."""
+"""sfm.features."""

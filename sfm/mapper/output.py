@@ -8,6 +8,7 @@ import itertools
 import numpy as np
 
 from sfm.core.camera_models import calibration_matrix
+from sfm.mapper.bundle_adjuster import BundleAdjuster
 from sfm.mapper.state import MapperState
 from sfm.core.model import Camera, Image, Point3D, Reconstruction
 from sfm.viz.recorder import Recorder, log_camera
@@ -51,7 +52,7 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
     return recon
 
 
-def log_progress(state: MapperState, recorder: Recorder) -> None:
+def log_progress(state: MapperState, adjuster: BundleAdjuster, recorder: Recorder) -> None:
     """``clusters/<label>/points``, the new camera and the last BA's RMS on the
     ``registration`` timeline: the model growing image by image."""
     if not recorder.enabled:
@@ -61,7 +62,7 @@ def log_progress(state: MapperState, recorder: Recorder) -> None:
     label = state.payload.label
     recorder.set_time("registration", state.num_registered)
     recorder.log(f"clusters/{label}/points", rr.Points3D(state.track_xyz[state.track_valid]))
-    recorder.log(f"clusters/{label}/ba_rms_px", rr.Scalars(state.last_ba_rms))
+    recorder.log(f"clusters/{label}/ba_rms_px", rr.Scalars(adjuster.last_rms))
     i = state.last_registered
     if i >= 0:
         c = state.cam_index[i]

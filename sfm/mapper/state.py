@@ -14,9 +14,9 @@ import logging
 
 import numpy as np
 
-from sfm.core.camera_models import project, unproject
-from sfm.mapper.bundle_adjuster import _TRIANGULATION_ROWS, BundleAdjustmentSteps, _gather
-from sfm.mapper.payload import MapperInput, MapperOptions
+from sfm.core.camera_models import has_bogus_params, project, unproject
+from sfm.mapper.payload import MapperInput
+from sfm.mapper.options import MapperOptions
 from sfm.features.sift import localization_sigma
 from sfm.mapper.tracks import build_tracks, work_cuts
 from sfm.mapper.triangulation import depths, max_triangulation_angles, triangulate_dlt
@@ -24,14 +24,27 @@ from sfm.mapper.triangulation import depths, max_triangulation_angles, triangula
 log = logging.getLogger(__name__)
 
 _ERROR_ROWS = 1_000_000  # reprojection errors computed this many rows at a time
+# Track rows triangulated or refined at once: the per-row temporaries stay around 100 MB.
+ROW_CHUNK = 250_000
 MAX_REG_TRIALS = 3  # failures after which a stalled model stops retrying an image (COLMAP's max_reg_trials)
+# Registered images from which a camera with degenerate intrinsics takes its images out of the
+# model (COLMAP's IncrementalMapper::FilterImages waits for 20).
+MIN_IMAGES_FOR_CAMERA_FILTER = 20
 
 
+def track_rows(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the given tracks (concatenated) and the position of each row's track in ``tracks``."""
+    lengths = starts[tracks + 1] - starts[tracks]
+    owner = np.repeat(np.arange(len(tracks)), lengths)
+    first = np.repeat(starts[tracks], lengths)
+    offset = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    return first + offset, owner
 
 
-class MapperState(BundleAdjustmentSteps):
-    """Arrays and steps of one incremental reconstruction (see the module docstring; the
-    bundle adjustment and filtering steps are :class:`sfm.mapper.bundle_adjuster.BundleAdjustmentSteps`)."""
+class MapperState:
+    """Arrays and steps of one incremental reconstruction (see the module docstring).  Its
+    bundle adjustments are run by a :class:`sfm.mapper.bundle_adjuster.BundleAdjuster`, which
+    writes back through :meth:`apply_adjustment`."""
 
     def __init__(self, payload: MapperInput, opts: MapperOptions) -> None:
         self.payload, self.opts = payload, opts
@@ -95,14 +108,40 @@ class MapperState(BundleAdjustmentSteps):
         self.failed = np.zeros(n, dtype=np.int64)
         self.fail_visible = np.zeros(n, dtype=np.int64)
         self.structureless_failed: dict[int, int] = {}
-        self.last_ba_rms = float("nan")
-        self.last_ba_decrease = 0.0  # the relative cost decrease of the last BA's last iteration
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         self._update_normalised()
 
-    def apply_params(self) -> None:
-        """Recompute normalised coordinates after the intrinsics were set from outside."""
+    def set_camera_params(self, params_by_key: dict[int, np.ndarray]) -> None:
+        """Intrinsics of the cameras named by key (``cam_keys``) from outside the model (the
+        merged clusters' cameras); normalised coordinates follow."""
+        for c, key in enumerate(self.cam_keys):
+            if key in params_by_key:
+                self.params[c] = np.asarray(params_by_key[key], dtype=np.float64)
         self._update_normalised()
+
+    def set_poses(self, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Register the named images with the given ``cam_from_world`` poses (the merged
+        clusters' poses); the other images stay unregistered."""
+        for i, name in enumerate(self.names):
+            if name in poses:
+                self.R[i], self.t[i] = poses[name]
+                self.registered[i] = True
+        self.num_registered = int(self.registered.sum())
+
+    def set_points(self, tracks: np.ndarray, xyz: np.ndarray) -> None:
+        self.track_xyz[tracks] = xyz
+
+    def apply_adjustment(self, images: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                         tracks: np.ndarray, xyz: np.ndarray, cams: np.ndarray | None,
+                         camera_params) -> None:
+        """A bundle adjustment's result: poses of ``images``, points of ``tracks`` and, unless
+        ``cams`` is None, the intrinsics of those cameras (normalised coordinates follow)."""
+        self.R[images], self.t[images] = rotations, translations
+        self.track_xyz[tracks] = xyz
+        if cams is not None:
+            for c, p in zip(cams, camera_params):
+                self.params[c] = np.asarray(p, dtype=np.float64)
+            self._update_normalised()
 
     def close_model(self) -> None:
         self.used |= self.registered
@@ -119,9 +158,9 @@ class MapperState(BundleAdjustmentSteps):
         return self.priors[self.cam_index[i]]
 
     def focal(self, i: int) -> float:
-        return self._camera_focal(self.cam_index[i])
+        return self.camera_focal(self.cam_index[i])
 
-    def _camera_focal(self, c: int) -> float:
+    def camera_focal(self, c: int) -> float:
         spec_focal = self.params[c][[0, 1]] if self.priors[c].model in ("PINHOLE", "OPENCV") else self.params[c][[0]]
         return float(np.mean(spec_focal))
 
@@ -159,7 +198,6 @@ class MapperState(BundleAdjustmentSteps):
         self.last_registered = j
         self.triangulate_new(j)
         log.info("%s: initial pair %s - %s, %d points", self.payload.label, self.names[i], self.names[j], int(self.track_valid.sum()))
-        self.global_ba()
 
     # ------------------------------------------------------------------ registration
     def next_image_candidates(self, stalled: bool = False) -> list[int]:
@@ -208,11 +246,11 @@ class MapperState(BundleAdjustmentSteps):
         rows and a triangulation angle >= ``min_tri_angle``.  Two passes: all rows, then the
         inliers of the first pass.  Returns the number of new valid points."""
         lengths = self.starts[tracks + 1] - self.starts[tracks]
-        cuts = work_cuts(np.cumsum(lengths), _TRIANGULATION_ROWS)  # chunks: bounded temporaries
+        cuts = work_cuts(np.cumsum(lengths), ROW_CHUNK)  # chunks: bounded temporaries
         return sum(self._triangulate_chunk(tracks[a:b]) for a, b in zip(cuts[:-1], cuts[1:]))
 
     def _triangulate_chunk(self, tracks: np.ndarray) -> int:
-        rows, owner = _gather(self.starts, tracks)
+        rows, owner = track_rows(self.starts, tracks)
         # rows of registered images; not those a degenerate camera cannot unproject
         keep = self.registered[self.obs_image[rows]] & np.isfinite(self.obs_norm[rows]).all(axis=1)
         rows, owner = rows[keep], owner[keep]
@@ -245,7 +283,7 @@ class MapperState(BundleAdjustmentSteps):
         new = tracks[accepted]
         self.track_xyz[new] = xyz_out[accepted]
         self.track_valid[new] = True
-        rows_all, _ = _gather(self.starts, new)
+        rows_all, _ = track_rows(self.starts, new)
         on = self.registered[self.obs_image[rows_all]]
         rows_all = rows_all[on]
         err = self.reprojection_errors(rows_all, self.track_xyz[self.obs_track[rows_all]])
@@ -270,3 +308,76 @@ class MapperState(BundleAdjustmentSteps):
             err = self.reprojection_errors(cand, self.track_xyz[self.obs_track[cand]])
             self.obs_inlier[cand[err < self.opts.max_reproj_error]] = True
         return added
+
+    # ------------------------------------------------------------------ rows of tracks
+    def track_rows(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the given tracks and the position of each row's track in ``tracks``."""
+        return track_rows(self.starts, tracks)
+
+    def inlier_rows(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`track_rows` restricted to the inlier rows in registered images."""
+        rows, owner = track_rows(self.starts, tracks)
+        keep = self.obs_inlier[rows] & self.registered[self.obs_image[rows]]
+        return rows[keep], owner[keep]
+
+    # ------------------------------------------------------------------ filtering
+    def drop_degenerate_cameras(self) -> None:
+        """COLMAP's image filter after a global BA: the images of a camera whose refined
+        intrinsics became bogus (``sfm.camera_models.has_bogus_params``; a camera seen by a
+        handful of observations can drift there) leave the model, and the camera returns to
+        its prior, so one bad camera neither stays in the model nor poisons the others'
+        points with non-finite coordinates.  An image dropped this way may register again.
+        Cameras held fixed, or already outside the limits as given, are left alone; so is every
+        camera when ``camera_filter`` is off (the refinement of merged poses, where nothing
+        would register the images again).
+        Not before ``MIN_IMAGES_FOR_CAMERA_FILTER`` images are registered: a young model's
+        intrinsics still move a lot (COLMAP's rule and number).  Until then, rows a camera
+        cannot unproject are left out of triangulation and registration."""
+        if not self.camera_filter or self.num_registered < MIN_IMAGES_FOR_CAMERA_FILTER:
+            return
+        dropped = []
+        for c, prior in enumerate(self.priors):
+            images = np.flatnonzero(self.registered & (self.cam_index == c))
+            if (prior.fixed or len(images) == 0
+                    or not has_bogus_params(prior.model, self.params[c], prior.width, prior.height)
+                    or has_bogus_params(prior.model, prior.params, prior.width, prior.height)):
+                continue  # held, unused, sound, or already so as given: nothing to go back to
+            log.info("%s: camera %d has degenerate intrinsics %s after BA: %d image(s) leave the model",
+                     self.payload.label, c, np.array2string(self.params[c], precision=4), len(images))
+            self.registered[images] = False
+            for i in images:
+                self.obs_inlier[self.image_rows[i]] = False
+            self.num_registered -= len(images)
+            self.params[c] = np.array(prior.params, dtype=np.float64)
+            dropped.extend(images.tolist())
+        if dropped:
+            self._update_normalised()
+            for i in dropped:  # retried once they see 20% more points (PnP and structure-less)
+                self.failed[i] += 1
+                self.fail_visible[i] = len(self.visible_points(i)[0])
+                self.structureless_failed[i] = int(self.fail_visible[i])
+
+    def filter_observations(self, tracks: np.ndarray) -> None:
+        """Drop rows above ``max_reproj_error`` and points left with < 2 rows or too small an
+        angle (COLMAP's filtering after BA)."""
+        rows, owner = track_rows(self.starts, tracks)
+        rows_mask = self.obs_inlier[rows]
+        rows, owner = rows[rows_mask], owner[rows_mask]
+        err = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]])
+        bad = err >= self.opts.max_reproj_error
+        self.obs_inlier[rows[bad]] = False
+        rows, owner = rows[~bad], owner[~bad]
+        counts = np.bincount(owner, minlength=len(tracks))
+        order = np.argsort(owner, kind="stable")
+        rows_sorted = rows[order]
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        img = self.obs_image[rows_sorted]
+        angles = np.zeros(len(tracks))
+        has = counts >= 2
+        if has.any():
+            angles = max_triangulation_angles(self.centers(img), self.track_xyz[tracks], starts)
+        dead = (counts < 2) | (angles < self.opts.min_tri_angle)
+        dead_tracks = tracks[dead]
+        self.track_valid[dead_tracks] = False
+        drows, _ = track_rows(self.starts, dead_tracks)
+        self.obs_inlier[drows] = False

@@ -25,9 +25,10 @@ import logging
 
 import numpy as np
 
+from sfm.mapper.initialization import relative_pose
 from sfm.mapper.state import MapperState
 
-log = logging.getLogger("sfm.mapper.state")
+log = logging.getLogger(__name__)
 
 # Points that must agree on the baseline length (a median of 1-D estimates; OpenSfM registers
 # with 10 inliers).
@@ -78,10 +79,10 @@ def _baseline_length(state: MapperState, i: int, rows: np.ndarray, X: np.ndarray
     return length, int(inliers.sum())  # the length these inliers were counted at
 
 
-def register_structureless(state: MapperState, relative_pose) -> bool:
+def register_structureless(state: MapperState) -> bool:
     """Register one unregistered image from its best registered neighbour's essential matrix
-    and the points it sees (module docstring); False when no image passes.  ``relative_pose``
-    is :func:`sfm.mapper.incremental._relative_pose` (cam_i_from_cam_j, unit t, inliers)."""
+    (:func:`sfm.mapper.initialization.relative_pose`) and the points it sees (module
+    docstring); False when no image passes."""
     opts = state.opts
     neighbours = _best_registered_neighbours(state)
     for i in sorted(neighbours, key=lambda k: (-len(neighbours[k][1]), k)):

@@ -1,1 +1,1 @@
-"""sfm.stages.match."""
+"""sfm.matching."""

@@ -20,6 +20,7 @@ import numpy as np
 from graph.expansion import expand_clusters
 from graph.image_graph import build_image_graph, connected_components
 from graph.partition import cut_weight, labels_from_clusters, partition_graph
+from sfm.clustering.options import ClusterOptions
 from sfm.io.database import Database
 from sfm.errors import InputError, NoModelError
 from sfm.viz.recorder import Recorder
@@ -27,33 +28,6 @@ from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_rec
 from sfm.io.workspace import CLUSTERS, DATABASE, read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class ClusterOptions:
-    """Options of the ``cluster`` stage (paper Alg. 1; defaults from the authors' code).
-
-    max_cluster_size: S_max, the largest number of images in a cluster core.
-    completeness_ratio: C, the completeness eta(i) = sum_j |Ci ∩ Cj| / |Ci| that expansion
-        aims for in every cluster.
-    max_overlap: O_max, the most lost image edges added between one pair of clusters.
-    min_inliers: a pair counts as an image-graph edge from this many verified inliers.
-    seed: seed of the spectral partition and of the random expansion edges.
-    """
-
-    max_cluster_size: int = 100
-    completeness_ratio: float = 0.5
-    max_overlap: int = 50
-    min_inliers: int = 15
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.max_cluster_size < 2:
-            raise InputError("--max-cluster-size must be at least 2")
-        if not 0.0 <= self.completeness_ratio <= 1.0:
-            raise InputError("--completeness must be in [0, 1]")
-        if self.max_overlap < 1:
-            raise InputError("--overlap must be at least 1")
 
 
 @dataclass(frozen=True)
@@ -103,7 +77,7 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
     components = connected_components(graph)
     isolated = sorted(int(c[0]) for c in components if len(c) == 1)
     cores = [c for c in partition_graph(graph, options.max_cluster_size, seed=options.seed) if len(c) > 1]
-    expansion = expand_clusters(graph, cores, options.completeness_ratio, options.max_overlap, seed=options.seed)
+    expansion = expand_clusters(graph, cores, options.completeness, options.max_overlap, seed=options.seed)
     labels = labels_from_clusters(list(expansion.cores), len(image_ids))
     total_weight = float(weights.sum())
     cut_fraction = cut_weight(graph, labels) / total_weight if total_weight > 0 else 0.0
@@ -121,7 +95,7 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
             for k, (core, members, stats) in enumerate(zip(expansion.cores, expansion.clusters, expansion.stats))
         ],
         "max_cluster_size": options.max_cluster_size,
-        "completeness_ratio": options.completeness_ratio,
+        "completeness_ratio": options.completeness,
         "max_overlap": options.max_overlap,
         "maxst": [[int(a), int(b), int(w)] for a, b, w in expansion.maxst_edges],
         "extra_edges": [[int(a), int(b), int(w)] for a, b, w in expansion.extra_edges],

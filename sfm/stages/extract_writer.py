@@ -26,7 +26,7 @@ from sfm.io.ledger import Ledger, fingerprint, options_record, resume_or_restart
 from sfm.io.workspace import DATABASE, read_json, write_json_atomic
 
 if TYPE_CHECKING:
-    from sfm.stages.extract import ExtractOptions
+    from sfm.features.options import ExtractOptions
 
 # The messages are the extract stage's: they keep its logger name (and its log configuration).
 logger = logging.getLogger("sfm.stages.extract")

@@ -9,93 +9,28 @@ Without ``WORK/clusters.json`` every image is in one cluster and the models go t
 
 from __future__ import annotations
 
-import copy
 import logging
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
+from tqdm import tqdm
 
-from sfm.io.colmap_model import read_model, write_model
-from sfm.io.database import Database
-from sfm.errors import InputError, NoModelError
-from sfm.execution.local import LocalExecutor
-from sfm.mapper.payload import CameraPrior, MapperInput, MapperOptions
 from sfm.core.model import Reconstruction
-from sfm.viz.recorder import Recorder, log_model
-from sfm.features.sift import keypoint_scales
+from sfm.errors import InputError, NoModelError
+from sfm.execution.local import LocalExecutor, TaskResult
+from sfm.io.colmap_model import read_model, write_model
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.io.workspace import CLUSTERS, DATABASE, read_json, update_report
+from sfm.mapper.incremental import reconstruct_incremental
+from sfm.mapper.options import MapperOptions
+from sfm.mapper.payload import MapperInput
+from sfm.stages.payloads import ClusterPayloads
+from sfm.viz.recorder import Recorder, log_model
 
 log = logging.getLogger(__name__)
-
-
-class ClusterPayloads(Sequence[MapperInput]):
-    """One :class:`MapperInput` per cluster (``None``: all images), read from the database
-    when indexed: each holds its cluster's keypoints and verified matches, so building them
-    one at a time keeps memory to the clusters in flight.  Images are named, everything else
-    is arrays: a payload needs nothing from the caller's disk.  ``labels``, ``names`` and
-    ``sizes`` need no read."""
-
-    def __init__(self, db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
-                 min_inliers: int, labels: list[str] | None = None) -> None:
-        self.db_path, self.fixed_intrinsics, self.min_inliers = Path(db_path), fixed_intrinsics, min_inliers
-        with Database(db_path, readonly=True) as db:
-            self.images, self.cams = db.read_images(), db.read_cameras()
-        by_name = {im.name: iid for iid, im in self.images.items()}
-        self.whole = clusters is None
-        self.groups = [sorted(self.images)] if clusters is None else [sorted(by_name[n] for n in c) for c in clusters]
-        self.labels = list(labels) if labels else [f"C{k}" for k in range(len(self.groups))]
-        self.names = [[self.images[i].name for i in ids] for ids in self.groups]
-        self.sizes = [len(ids) for ids in self.groups]
-
-    def __len__(self) -> int:
-        return len(self.groups)
-
-    def subset(self, indices: list[int]) -> ClusterPayloads:
-        out = copy.copy(self)
-        out.groups, out.labels = [self.groups[k] for k in indices], [self.labels[k] for k in indices]
-        out.names, out.sizes = [self.names[k] for k in indices], [self.sizes[k] for k in indices]
-        return out
-
-    def __getitem__(self, k):  # type: ignore[override]
-        if isinstance(k, slice):
-            return [self[j] for j in range(len(self))[k]]
-        ids, images, cams = self.groups[k], self.images, self.cams
-        with Database(self.db_path, readonly=True) as db:
-            geoms = db.read_two_view_geometries(min_config=2, min_inliers=self.min_inliers,
-                                                image_ids=None if self.whole else ids)
-            keypoints = db.read_all_keypoints(ids)
-        local = {iid: n for n, iid in enumerate(ids)}
-        cameras = {
-            c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
-                           cams[c].prior_focal_length, fixed=self.fixed_intrinsics and cams[c].model == "PINHOLE")
-            for c in sorted({images[i].camera_id for i in ids})
-        }
-        pairs = [(local[a], local[b], g.inlier_matches.astype(np.int32), int(g.config))
-                 for (a, b), g in geoms.items() if a in local and b in local]
-        del geoms
-        return MapperInput(
-            image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],
-            cameras=cameras, keypoints=[_with_scale(keypoints.pop(i, np.zeros((0, 2)))) for i in ids],
-            pairs=pairs, label=self.labels[k],
-        )
-
-
-def _with_scale(keypoints: np.ndarray) -> np.ndarray:
-    """A database keypoint table as the payload's (K, 2) pixels, or (K, 3) pixels and scale."""
-    scales = keypoint_scales(keypoints)
-    xy = np.asarray(keypoints, np.float64)[:, :2]
-    return xy if scales is None else np.column_stack([xy, scales])
-
-
-def load_payloads(db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
-                  min_inliers: int, labels: list[str] | None = None) -> list[MapperInput]:
-    """Every :class:`ClusterPayloads` payload at once (small problems, tests)."""
-    return list(ClusterPayloads(db_path, clusters, fixed_intrinsics, min_inliers, labels))
 
 
 def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
@@ -162,16 +97,18 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
-    for res in executor.run(payloads.subset(todo), options.for_model(direct), recorder) if todo else ():
-        k = todo[res.index]
+    for k, res in _map_clusters(payloads, todo, options.for_model(direct), executor, recorder):
         label = payloads.labels[k]
-        written = write_models(res.models, _folder(workspace, direct, label))
+        models = res.value or []
+        written = write_models(models, _folder(workspace, direct, label))
         per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
                           "models": written, "error": res.error}
         if res.error is None:  # a failed cluster is tried again by the next run
             ledger.data["map"]["clusters"][label] = per_cluster[k]
             ledger.save()
-        for m, model in enumerate(res.models):
+        else:
+            log.warning("cluster %s failed: %s", label, res.error)
+        for m, model in enumerate(models):
             log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
     flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
@@ -198,6 +135,32 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         raise NoModelError("no model could be made: no image pair could be reconstructed (too few inliers or too small baselines)")
     log.info("map: %d clusters, %d local models, %.1f s", len(payloads), len(flat), elapsed)
     return MapResult(num_images, len(payloads), flat, per_cluster, round(elapsed, 3), direct)
+
+
+def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]:
+    """The ``map`` stage's task: one cluster's payload -> its local models (paper section 3.2:
+    "image clusters are distributed into servers"); safe in any worker process."""
+    payload, options = task
+    return reconstruct_incremental(payload, options)
+
+
+def _map_clusters(payloads: ClusterPayloads, todo: list[int], options: MapperOptions, executor,
+                  recorder: Recorder) -> Iterator[tuple[int, TaskResult]]:
+    """``(cluster index, result)`` of every cluster in ``todo`` as it finishes.  The largest go
+    first, so the pool is not left waiting on one big straggler; each payload is read only when
+    a worker is about to take it.  Run in this process, the model is logged as it grows."""
+    order = sorted(todo, key=lambda k: -payloads.sizes[k])
+    task = map_cluster
+    if executor.runs_in_process(len(order)):
+        task = lambda t: reconstruct_incremental(*t, recorder)  # noqa: E731 - not pickled
+    items = ((payloads[k], options) for k in order)
+    bar = tqdm(total=len(order), desc="local SfM", unit="cluster", disable=None)
+    try:
+        for res in executor.map(task, items, num_items=len(order), ordered=False, errors="return"):
+            bar.update()
+            yield order[res.index], res
+    finally:
+        bar.close()
 
 
 def failed_clusters_warning(failed: list[str]) -> str:

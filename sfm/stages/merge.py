@@ -1,9 +1,10 @@
-"""Stage functions that tie the library together: ``merge`` and ``reconstruct``.
+"""The ``merge`` stage: ``WORK/clusters/C<k>/<m>`` -> ``WORK/sparse/N`` and ``WORK/merge.json``.
 
-``run_merge`` implements the paper's merging (Alg. 2) and global refinement on the local models
-``map`` left in ``WORK/clusters``; ``run_reconstruct`` runs every stage in order (extract and
-match only when an image folder is given; a workspace whose database came from ``synth`` or
-from COLMAP starts at ``cluster``).
+The paper's merging (section 3.2, Alg. 2) and global refinement (Figure 1) on the local models
+``map`` left in ``WORK/clusters``: the cluster graph and its merge plan
+(``sfm.merge.cluster_graph``), every model moved into its anchor's frame
+(``sfm.merge.alignment``), then all tracks re-triangulated and bundle-adjusted with the merged
+poses (``sfm.merge.refinement``).  One model per merge component, largest first.
 """
 
 from __future__ import annotations
@@ -14,24 +15,54 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from backend.memory import return_freed_memory
-from sfm.errors import NoModelError
-from sfm.mapper.incremental import refine_with_poses
-from sfm.mapper.payload import MapperOptions
-from sfm.stages.map import ClusterPayloads, failed_clusters_warning, write_models
-from sfm.merge.cluster_graph import (
-    MergeOptions,
-    anchor_from_model,
-    build_cluster_graph,
-    load_local_models,
-    merge_json,
-    merged_poses,
-    plan_components,
-)
-from sfm.viz.recorder import Recorder, log_model
+from graph.merge_plan import MergePlan
+from sfm.core.geometry import rotation_to_quaternion
+from sfm.errors import InputError, NoModelError
+from sfm.io.colmap_model import read_model
 from sfm.io.ledger import Ledger, fingerprint, options_record
 from sfm.io.workspace import DATABASE, MERGE, REPORT, read_json, update_report, write_json_atomic
+from sfm.mapper.options import MapperOptions
+from sfm.merge.alignment import anchor_from_model, merged_poses
+from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components
+from sfm.merge.options import MergeOptions
+from sfm.merge.refinement import refine_with_poses
+from sfm.stages.map import failed_clusters_warning, write_models
+from sfm.stages.payloads import ClusterPayloads
+from sfm.viz.recorder import Recorder, log_model
 
 log = logging.getLogger(__name__)
+
+
+def load_local_models(workspace: Path) -> list[LocalModel]:
+    """Every ``clusters/C<k>/<m>`` model of the workspace, in (k, m) order."""
+    root = Path(workspace) / "clusters"
+    if not root.is_dir():
+        raise InputError(f"no local models in {root}: run cluster and map first")
+    out = []
+    for cdir in sorted((d for d in root.iterdir() if d.is_dir() and d.name[1:].isdigit()), key=lambda d: int(d.name[1:])):
+        for mdir in sorted((d for d in cdir.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name)):
+            out.append(LocalModel(f"{cdir.name}/{mdir.name}", read_model(mdir)))
+    return out
+
+
+def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan]) -> dict:
+    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges, and each merge
+    component's MinST, anchor and layers."""
+    return {
+        "nodes": [{"id": k, "label": m.label, "images": len(m.model.images), "points": len(m.model.points3D)} for k, m in enumerate(models)],
+        "edges": [
+            {"a": u, "b": v, "scale": e["sim"].scale, "rotation_qvec": rotation_to_quaternion(e["sim"].rotation).tolist(),
+             "translation": e["sim"].translation.tolist(), "msd": e["msd"], "inliers": e["inliers"],
+             "common_cameras": e["common_cameras"], "common_points": e["common_points"], "used": e["used"]}
+            for (u, v), e in sorted(edges.items())
+        ],
+        "components": [
+            {"anchor": p.anchor, "clusters": list(p.clusters), "minst": [list(e) for e in p.edges],
+             "layers": {str(k): v for k, v in p.layer.items()}, "parent": {str(k): v for k, v in p.parent.items()},
+             "path": {str(k): list(v) for k, v in p.path.items()}, "num_layers": p.num_layers}
+            for p in plans
+        ],
+    }
 
 
 @dataclass(frozen=True)
@@ -123,44 +154,3 @@ def _local_models_fingerprint(workspace: Path) -> str:
     root = workspace / "clusters"
     files = sorted(p for p in root.glob("C*/*/*") if p.is_file()) if root.is_dir() else []
     return fingerprint(*[x for p in files for x in (str(p.relative_to(root)), p.read_bytes())])
-
-
-@dataclass(frozen=True)
-class ReconstructOptions:
-    """The options of every stage, for ``graphsfm reconstruct`` and :func:`sfm.reconstruct`."""
-
-    extract: object = None
-    match: object = None
-    cluster: object = None
-    mapper: MapperOptions = MapperOptions()
-    merge: MergeOptions = MergeOptions()
-
-
-def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOptions,
-                    executor=None, recorder: Recorder | None = None) -> dict:
-    """Every stage in order; returns the report.  Extract and match run when ``images`` is
-    given; clustering is skipped (one cluster) when all images fit in one cluster."""
-    from sfm.stages.cluster import ClusterOptions, run_cluster
-    from sfm.stages.map import run_map
-
-    workspace = Path(workspace)
-    recorder = recorder or Recorder.disabled()
-    if images is not None:
-        from sfm.stages.extract import ExtractOptions, run_extract
-        from sfm.stages.match import MatchOptions, run_match
-
-        remote = executor if hasattr(executor, "imap") else None  # Dask: features and matches too
-        t0 = time.perf_counter()
-        run_extract(Path(images), workspace, options.extract or ExtractOptions(), remote)
-        t1 = time.perf_counter()
-        run_match(workspace, options.match or MatchOptions(), remote)
-        update_report(workspace, {"image_dir": str(images)}, {"T_feat": t1 - t0, "T_match": time.perf_counter() - t1})
-    t0 = time.perf_counter()
-    cluster_result = run_cluster(workspace, options.cluster or ClusterOptions(), recorder)
-    update_report(workspace, {"num_clusters": cluster_result.num_clusters}, {"T_GC": time.perf_counter() - t0})
-    map_result = run_map(workspace, options.mapper, recorder, executor)
-    if map_result.direct:  # one cluster: its models are the final ones, nothing to merge
-        update_report(workspace, {}, {"T_merge": 0.0, "T_BA": 0.0})
-    else:
-        run_merge(workspace, options.mapper, options.merge, recorder)
-    return read_json(workspace / REPORT)

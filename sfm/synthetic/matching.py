@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm.synthetic.scenes import SynthOptions, SyntheticScene
+from sfm.synthetic.options import SynthOptions
+from sfm.synthetic.scenes import SyntheticScene
 
 
 @dataclass(frozen=True)

@@ -17,21 +17,9 @@ import cv2
 import numpy as np
 
 from sfm.core.geometry import look_at, rotation_to_quaternion
+from sfm.synthetic.options import RenderOptions
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RenderOptions:
-    """num_images: cameras on the arc (default 24); width/height: pixels; focal: pixels;
-    texture_size: side of each plane's texture in pixels; seed: all randomness."""
-
-    num_images: int = 24
-    width: int = 640
-    height: int = 480
-    focal: float = 560.0
-    texture_size: int = 1024
-    seed: int = 0
 
 
 @dataclass(frozen=True)

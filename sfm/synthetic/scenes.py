@@ -1,6 +1,6 @@
 """Synthetic scenes with exact ground truth, written straight into a COLMAP-schema database.
 
-Three correspondence-level scenes of any size (DESIGN.md, "Tests and benchmarks"):
+Three correspondence-level scenes of any size, for tests and benchmarks:
 
 * ``orbit``: a ring of cameras around a bumpy sphere (an object-centred capture);
 * ``street``: a forward-moving camera between two facades above a ground plane;
@@ -31,61 +31,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from sfm.core.geometry import look_at, rotation_about_axis
+from sfm.synthetic.options import SynthOptions
 
 log = logging.getLogger(__name__)
-
-SCENES = ("orbit", "street", "aerial")
-
-
-@dataclass(frozen=True)
-class SynthOptions:
-    """Options of ``graphsfm synth`` for correspondence-level scenes (defaults in the fields).
-
-    scene: one of orbit|street|aerial.
-    num_images: number of cameras.
-    observations_per_image: average number of 3D points an image sees.
-    pixel_noise: standard deviation of the keypoint noise in pixels per axis (0.5: SIFT-like).
-    outlier_ratio: share of wrong matches among a pair's raw matches.
-    verified_outlier_ratio: share of wrong matches that survive into a pair's verified inliers;
-        they lie within 2 px of the epipolar line, like real RANSAC survivors.
-    recall_min: lowest per-pair share of true matches that verification keeps.
-    recall_max: highest such share (each pair draws its recall uniformly in between).
-    distractor_ratio: unmatched keypoints per image, relative to its observations.
-    min_inliers: a pair with fewer verified inliers gets no two-view geometry (15 is the
-        project's definition of a verified pair).
-    width: image width in pixels.
-    height: image height in pixels.
-    focal: focal length in pixels (None: equal to the width).
-    seed: the only source of randomness.
-    """
-
-    scene: str = "orbit"
-    num_images: int = 100
-    observations_per_image: int = 2000
-    pixel_noise: float = 0.5
-    outlier_ratio: float = 0.0
-    verified_outlier_ratio: float = 0.03
-    recall_min: float = 0.80
-    recall_max: float = 0.95
-    distractor_ratio: float = 0.2
-    min_inliers: int = 15
-    width: int = 1280
-    height: int = 960
-    focal: float | None = None
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.scene not in SCENES:
-            raise ValueError(f"unknown scene {self.scene!r}; choose one of {', '.join(SCENES)}")
-        if self.num_images < 2:
-            raise ValueError("a synthetic scene needs at least 2 images")
-        if not 0.0 <= self.outlier_ratio < 1.0:
-            raise ValueError("--outlier-ratio must be in [0, 1)")
-        if not 0.0 <= self.verified_outlier_ratio < 0.5:
-            raise ValueError("verified_outlier_ratio must be in [0, 0.5)")
-        if not 0.0 < self.recall_min <= self.recall_max <= 1.0:
-            raise ValueError("recall range must satisfy 0 < recall_min <= recall_max <= 1")
-
 
 @dataclass
 class SyntheticScene:
@@ -316,45 +264,3 @@ def gt_reconstruction(scene: SyntheticScene):
     recon._next_point_id = len(scene.points) + 1
     recon.update_point_errors()
     return recon
-
-
-def run_synth(workspace: Path, opts: SynthOptions) -> dict:
-    """``graphsfm synth``: scene + database + GT table + GT model in ``workspace``."""
-    from sfm.io.colmap_model import write_model
-    from sfm.synthetic.matching import simulate_matching, write_database
-
-    workspace = Path(workspace)
-    db_path = workspace / "database.db"
-    if db_path.exists():
-        raise FileExistsError(f"{db_path} exists; synth writes a new workspace (remove it first)")
-    (workspace / "gt" / "model").mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    scene = make_scene(opts)
-    pairs = simulate_matching(scene, opts)
-    t1 = time.perf_counter()
-    tmp_db = workspace / "database.db.partial"
-    tmp_db.unlink(missing_ok=True)
-    write_database(scene, pairs, tmp_db)
-    tmp_db.replace(db_path)
-    write_gt_table(scene, workspace / "gt" / "cameras_gt_opencv.txt")
-    write_model(gt_reconstruction(scene), workspace / "gt" / "model")
-    t2 = time.perf_counter()
-    verified = [p for p in pairs if len(p.inlier_matches)]
-    track_len = np.bincount(scene.obs_point)
-    summary = {
-        "scene": opts.scene,
-        "images": len(scene.names),
-        "points": len(scene.points),
-        "observations": int(len(scene.obs_point)),
-        "mean_track_length": round(float(track_len.mean()), 3),
-        "pairs_with_matches": len(pairs),
-        "verified_pairs": len(verified),
-        "median_inliers": int(np.median([len(p.inlier_matches) for p in verified])) if verified else 0,
-        "time_scene_s": round(t1 - t0, 2),
-        "time_write_s": round(t2 - t1, 2),
-        "database": str(db_path),
-        "gt_table": str(workspace / "gt" / "cameras_gt_opencv.txt"),
-        "gt_model": str(workspace / "gt" / "model"),
-    }
-    log.info("synth: %s", summary)
-    return summary

@@ -1,0 +1,1 @@
+"""sfm.clustering."""

@@ -1,0 +1,19 @@
+"""Options of the ``merge`` stage (paper section 3.2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from backend.similarity import SimilarityOptions
+from sfm.core.options import Options, option
+
+
+@dataclass(frozen=True)
+class MergeOptions(Options):
+    """Options of the ``merge`` stage (``graphsfm merge``)."""
+
+    max_msd: float = option(
+        SimilarityOptions.max_msd, "Cluster-graph edges whose MSD (Eq. 10, normalised by the common cameras' "
+        "extent) exceeds this are not used: the paper's dotted edges.", above=0)
+    min_common_cameras: int = option(
+        2, "Registered images two local models must share to be aligned (two fix a scale).", min=2)
