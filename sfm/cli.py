@@ -35,11 +35,27 @@ from sfm.viz.options import RecordingOptions
 
 log = logging.getLogger("sfm")
 
-# The mapper's options that the refinement after merging reads (``graphsfm merge``); the others
-# steer registration, which merging does not do.
-MERGE_MAPPER_OPTIONS = ("min_num_matches", "max_reproj_error", "min_tri_angle", "intrinsics_refinement",
-                        "refine_given_intrinsics", "loss", "loss_scale", "scale_weights", "ba_max_observations",
-                        "min_model_size", "seed")
+# Each command's flags: the fields of these options dataclasses, in pipeline order.
+COMMAND_OPTIONS: dict[str, tuple[type, ...]] = {
+    "extract": (ExtractOptions, ExecutionOptions, RecordingOptions),
+    "match": (MatchOptions, ExecutionOptions, RecordingOptions),
+    "cluster": (ClusterOptions, RecordingOptions),
+    "map": (MapperOptions, ExecutionOptions, RecordingOptions),
+    "merge": (MergeOptions, MapperOptions, RecordingOptions),
+    "reconstruct": (ExtractOptions, MatchOptions, ClusterOptions, MapperOptions, MergeOptions, ExecutionOptions,
+                    RecordingOptions),
+    "demo": (DemoOptions, ExecutionOptions, RecordingOptions),
+    "evaluate": (EvaluateOptions,),
+    "export": (ExportOptions,),
+    "synth": (SynthOptions,),
+}
+# ``graphsfm merge`` offers the mapper's options that the refinement after merging reads; the
+# others steer registration, which merging does not do.
+ONLY_FIELDS: dict[tuple[str, type], tuple[str, ...]] = {
+    ("merge", MapperOptions): ("min_num_matches", "max_reproj_error", "min_tri_angle", "intrinsics_refinement",
+                               "refine_given_intrinsics", "loss", "loss_scale", "scale_weights",
+                               "ba_max_observations", "min_model_size", "seed"),
+}
 
 
 def _rounded(obj, digits: int = 10):
@@ -92,9 +108,10 @@ def add_options(parser: argparse.ArgumentParser, cls: type, only: tuple[str, ...
                                help=help_text)
             continue
         choices = f.metadata.get("choices")
-        default = "see help" if f.default is None else f.default
+        if f.default is not None:  # an optional field's help says what its absence means
+            help_text += f" (default: {f.default})"
         group.add_argument(flag, dest=f.name, type=str if kind is Path else kind, default=f.default, choices=choices,
-                           metavar=None if choices else f.name.upper(), help=f"{help_text} (default: {default})")
+                           metavar=None if choices else f.name.upper(), help=help_text)
 
 
 def options_of(cls: type, args: argparse.Namespace):
@@ -265,73 +282,50 @@ def _workspace(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--workspace", required=True, help=what)
 
 
+def _command(sub, name: str, help_text: str, func) -> argparse.ArgumentParser:
+    p = sub.add_parser(name, help=help_text)
+    p.set_defaults(func=func)
+    return p
+
+
+def _add_command_options(p: argparse.ArgumentParser, name: str) -> None:
+    for cls in COMMAND_OPTIONS[name]:
+        add_options(p, cls, only=ONLY_FIELDS.get((name, cls)))
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="graphsfm", description="Graph-based parallel Structure-from-Motion (GraphSfM).")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug messages on stderr")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("extract", help="SIFT features of every image into WORK/database.db")
+    p = _command(sub, "extract", "SIFT features of every image into WORK/database.db", cmd_extract)
     p.add_argument("--images", required=True, help="image folder (searched recursively)")
     _workspace(p, "output folder")
-    for cls in (ExtractOptions, ExecutionOptions, RecordingOptions):
-        add_options(p, cls)
-    p.set_defaults(func=cmd_extract)
-
-    p = sub.add_parser("match", help="select pairs, match descriptors, verify two-view geometry")
+    p = _command(sub, "match", "select pairs, match descriptors, verify two-view geometry", cmd_match)
     _workspace(p, "workspace with database.db")
-    for cls in (MatchOptions, ExecutionOptions, RecordingOptions):
-        add_options(p, cls)
-    p.set_defaults(func=cmd_match)
-
-    p = sub.add_parser("cluster", help="cut the image graph into overlapping clusters (WORK/clusters.json)")
+    p = _command(sub, "cluster", "cut the image graph into overlapping clusters (WORK/clusters.json)", cmd_cluster)
     _workspace(p, "workspace with database.db")
-    for cls in (ClusterOptions, RecordingOptions):
-        add_options(p, cls)
-    p.set_defaults(func=cmd_cluster)
-
-    p = sub.add_parser("map", help="incremental SfM of each cluster (or of all images) -> sparse/ or clusters/")
+    p = _command(sub, "map", "incremental SfM of each cluster (or of all images) -> sparse/ or clusters/", cmd_map)
     _workspace(p, "workspace with database.db (and clusters.json)")
-    for cls in (MapperOptions, ExecutionOptions, RecordingOptions):
-        add_options(p, cls)
-    p.set_defaults(func=cmd_map)
-
-    p = sub.add_parser("merge", help="merge the local models along the MinST into sparse/N, then refine")
+    p = _command(sub, "merge", "merge the local models along the MinST into sparse/N, then refine", cmd_merge)
     _workspace(p, "workspace with clusters/C<k>/<m> models")
-    add_options(p, MergeOptions)
-    add_options(p, MapperOptions, only=MERGE_MAPPER_OPTIONS)
-    add_options(p, RecordingOptions)
-    p.set_defaults(func=cmd_merge)
-
-    p = sub.add_parser("reconstruct", help="every stage: extract, match, cluster, map, merge")
+    p = _command(sub, "reconstruct", "every stage: extract, match, cluster, map, merge", cmd_reconstruct)
     p.add_argument("--images", help="image folder (omit to start from an existing database.db)")
     _workspace(p, "output folder")
-    for cls in (ExtractOptions, MatchOptions, ClusterOptions, MapperOptions, MergeOptions, ExecutionOptions,
-                RecordingOptions):
-        add_options(p, cls)
-    p.set_defaults(func=cmd_reconstruct)
-
-    p = sub.add_parser("demo", help="render a small scene, reconstruct it with several clusters, print its accuracy")
+    p = _command(sub, "demo", "render a small scene, reconstruct it with several clusters, print its accuracy",
+                 cmd_demo)
     p.add_argument("workspace", help="output folder (new)")
-    for cls in (DemoOptions, ExecutionOptions, RecordingOptions):
-        add_options(p, cls)
-    p.set_defaults(func=cmd_demo)
-
-    p = sub.add_parser("evaluate", help="compare a model with ground truth; prints JSON")
+    p = _command(sub, "evaluate", "compare a model with ground truth; prints JSON", cmd_evaluate)
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
     p.add_argument("--gt", required=True, help="GT table (cameras_gt_opencv.txt) or a COLMAP model folder")
-    add_options(p, EvaluateOptions)
-    p.set_defaults(func=cmd_evaluate)
-
-    p = sub.add_parser("export", help="convert a model to COLMAP text, binary, or a PLY point cloud")
+    p = _command(sub, "export", "convert a model to COLMAP text, binary, or a PLY point cloud", cmd_export)
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
     p.add_argument("out", help="output folder (txt, bin) or .ply file")
-    add_options(p, ExportOptions)
-    p.set_defaults(func=cmd_export)
-
-    p = sub.add_parser("synth", help="make a scene with exact ground truth: a database of simulated matches, or images")
+    p = _command(sub, "synth", "make a scene with exact ground truth: a database of simulated matches, or images",
+                 cmd_synth)
     _workspace(p, "output folder (new)")
-    add_options(p, SynthOptions)
-    p.set_defaults(func=cmd_synth)
+    for name, command_parser in sub.choices.items():
+        _add_command_options(command_parser, name)
     return parser
 
 
