@@ -1,7 +1,7 @@
 """The data of a bundle adjustment: the problem, the options, the result.
 
 Conventions: poses are ``cam_from_world`` (x_cam = R X + t, OpenCV axes: x right, y down, z
-forward); intrinsics are COLMAP camera models per camera group (:mod:`backend.camera_projection`);
+forward); intrinsics are COLMAP camera models per camera group (:mod:`backend.camera_models`);
 the pixel convention is the caller's, as long as principal points and observations agree.
 """
 
@@ -12,6 +12,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from backend.camera_models import reprojection_errors
+
 Array = np.ndarray
 
 
@@ -20,7 +22,7 @@ class BAProblem:
     """One bundle adjustment problem: cameras, poses, points, observations and what is held.
 
     camera_models (G,), camera_params (G,): COLMAP model name and parameter vector of each
-        camera group (:mod:`backend.camera_projection`); image_camera (N,): each image's group.
+        camera group (:mod:`backend.camera_models`); image_camera (N,): each image's group.
     rotations (N,3,3), translations (N,3): each image's ``cam_from_world``.
     points (P,3): world points.
     obs_image (M,), obs_point (M,), obs_xy (M,2): observation m sees point ``obs_point[m]`` in
@@ -49,6 +51,14 @@ class BAProblem:
             raise ValueError("obs_image, obs_point and obs_xy must have one row per observation")
         if self.obs_sigma is not None and np.shape(self.obs_sigma) != (num_obs,):
             raise ValueError(f"obs_sigma must hold {num_obs} values, one per observation")
+
+    def reprojection_errors(self) -> Array:
+        """Pixel distance (M,) between each observation and its projected point; inf behind the
+        camera (:func:`backend.camera_models.reprojection_errors`)."""
+        points = np.asarray(self.points, float)[np.asarray(self.obs_point, np.int64)]
+        return reprojection_errors(self.camera_models, self.camera_params, np.asarray(self.image_camera, np.int64),
+                                   np.asarray(self.rotations, float), np.asarray(self.translations, float),
+                                   self.obs_image, points, np.asarray(self.obs_xy, float))
 
     def observations(self, mask: Array) -> BAProblem:
         """The same problem over the observations selected by ``mask``."""
@@ -112,7 +122,7 @@ class BAOptions:
 @dataclass(frozen=True)
 class BAResult:
     """Result of :func:`backend.bundle_adjustment.bundle_adjust`; errors are pixel distances
-    (:func:`backend.camera_projection.reprojection_errors`).
+    (:func:`backend.camera_models.reprojection_errors`).
 
     rotations (N,3,3), translations (N,3): optimised cam_from_world poses; points (P,3);
     camera_params: one parameter vector per camera group (the input model's layout);

@@ -7,7 +7,7 @@ and :class:`backend.ba_problem.BAOptions` and returns a :class:`backend.ba_probl
 Conventions: poses are ``cam_from_world`` (x_cam = R X + t, OpenCV axes: x right, y down, z
 forward); GTSAM's ``Pose3`` of a camera is ``world_from_cam`` and is converted only by
 :func:`pose3_from_cam_from_world` and :func:`cam_from_world_from_pose3`. Intrinsics are COLMAP
-models per camera group, projected as :mod:`backend.camera_projection` does.
+models per camera group, projected as :mod:`backend.camera_models` does.
 
 Factors: with intrinsics held fixed, ``GenericProjectionFactorCal3DS2`` (pose and point
 variables; Cal3DS2 reproduces every supported model exactly), and ``TriangulationFactorCal3DS2``
@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
-from backend.camera_projection import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2, reprojection_errors
+from backend.camera_models import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2
 from backend.gtsam_solver import gauss_newton_or_lm, lm_optimizer, optimize_or_keep, robust_noise
 
 logger = logging.getLogger(__name__)
@@ -210,7 +211,7 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
     image_camera, refine = np.asarray(image_camera, np.int64), options.refine_intrinsics
     cameras, obs = (camera_models, camera_params, image_camera), (obs_image, obs_point, obs_xy)
-    initial_err = reprojection_errors(*cameras, rotations, translations, points, *obs)
+    initial_err = problem.reprojection_errors()
     observed, seen_points = np.unique(obs_image), np.unique(obs_point)
     groups = sorted(set(image_camera[observed].tolist()))
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -251,9 +252,8 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     params_out = [np.asarray(p, float).copy() for p in camera_params]
     for g in groups if refine != "none" else []:
         params_out[g] = _calibration_params(result, K(g), cameras, g, refine)
-    final_err = reprojection_errors(
-        camera_models, params_out, image_camera, rot_out, trans_out, pts_out, *obs
-    )
+    final_err = replace(problem, camera_params=params_out, rotations=rot_out, translations=trans_out,
+                        points=pts_out).reprojection_errors()
     res = BAResult(
         rotations=rot_out,
         translations=trans_out,

@@ -56,19 +56,12 @@ import numpy as np
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.bundle_adjustment import bundle_adjust
-from backend.camera_projection import reprojection_errors
+from backend.camera_models import reprojection_errors
+from backend.geometry import project_to_so3
 from backend.memory import return_freed_memory
 
 logger = logging.getLogger(__name__)
 _ERROR_ROWS = 1_000_000
-
-
-def _chordal_mean(rotations: np.ndarray) -> np.ndarray:
-    """Rotation closest in Frobenius norm to the mean of the given (K,3,3) rotations."""
-    u, _, vt = np.linalg.svd(rotations.mean(axis=0))
-    if np.linalg.det(u @ vt) < 0:
-        u[:, -1] *= -1
-    return u @ vt
 
 
 def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOptions = BAOptions(),
@@ -120,15 +113,15 @@ def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOpt
     rot_out, trans_out = rotations.copy(), translations.copy()
     moved = (count > 0) & ~np.isin(np.arange(n), problem.fixed_poses)
     for i in np.flatnonzero(moved):
-        rot_out[i] = _chordal_mean(rot_sum[i][None] / count[i])
+        rot_out[i] = project_to_so3(rot_sum[i] / count[i])  # the chordal L2 mean
         trans_out[i] = -rot_out[i] @ (centre_sum[i] / count[i])
     params_out = tuple(param_sum[g] / param_count[g] if param_count[g] else np.asarray(p, float).copy()
                        for g, p in enumerate(camera_params))
     sq_sum, err_sum = 0.0, 0.0
     for lo in range(0, len(obs_image), _ERROR_ROWS):  # in chunks: a rotation per row is 72 bytes
         part = slice(lo, lo + _ERROR_ROWS)
-        err = reprojection_errors(camera_models, params_out, image_camera, rot_out, trans_out, points_out,
-                                  obs_image[part], obs_point[part], obs_xy[part])
+        err = reprojection_errors(camera_models, params_out, image_camera, rot_out, trans_out, obs_image[part],
+                                  points_out[obs_point[part]], obs_xy[part])
         sq_sum, err_sum = sq_sum + float(np.sum(err**2)), err_sum + float(err.sum())
     return BAResult(rotations=rot_out, translations=trans_out, points=points_out, camera_params=params_out,
                     initial_rms=float(np.sqrt(initial_sq / len(obs_image))), final_rms=float(np.sqrt(sq_sum / len(obs_image))),

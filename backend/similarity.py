@@ -38,6 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from backend.geometry import project_to_so3, rotation_angle_deg
+from backend.sim3 import Sim3
+
 Array = np.ndarray
 _NEGLIGIBLE = 1e-9  # distances below this fraction of a model's extent are not used for ratios
 _MIN_SPREAD = 0.1  # second / first singular value of the centred centres: below, "collinear"
@@ -83,15 +86,6 @@ class SimilarityOptions:
 
 
 @dataclass(frozen=True)
-class Similarity:
-    """Similarity ``b_from_a``: X_b = scale * rotation @ X_a + translation."""
-
-    scale: float
-    rotation: Array
-    translation: Array
-
-
-@dataclass(frozen=True)
 class SimilarityResult:
     """Result of :func:`estimate_similarity`.
 
@@ -119,32 +113,8 @@ class SimilarityResult:
     extent_b: float
 
     @property
-    def sim_b_from_a(self) -> Similarity:
-        return Similarity(self.scale, self.rotation, self.translation)
-
-
-def apply_to_points(sim_b_from_a, points_a: Array) -> Array:
-    """X_b = s R X_a + t for points of shape (N, 3) or (3,)."""
-    return (
-        sim_b_from_a.scale * (np.asarray(points_a, float) @ sim_b_from_a.rotation.T)
-        + sim_b_from_a.translation
-    )
-
-
-def apply_to_pose(sim_b_from_a, rotation: Array, translation: Array) -> tuple[Array, Array]:
-    """``cam_from_world`` in frame b of a camera given in frame a: R_b = R_a R^T, t_b = s t_a - R_b t
-    (so that C_b = s R C_a + t)."""
-    rotation_b = np.asarray(rotation, float) @ sim_b_from_a.rotation.T
-    return rotation_b, sim_b_from_a.scale * np.asarray(
-        translation, float
-    ) - rotation_b @ sim_b_from_a.translation
-
-
-def invert(sim_b_from_a) -> Similarity:
-    """``a_from_b``: X_a = (1/s) R^T (X_b - t)."""
-    r_inv = sim_b_from_a.rotation.T
-    s = sim_b_from_a.scale
-    return Similarity(1.0 / s, r_inv, -(r_inv @ sim_b_from_a.translation) / s)
+    def sim_b_from_a(self) -> Sim3:
+        return Sim3(self.scale, self.rotation, self.translation)
 
 
 def mean_square_distance(
@@ -162,9 +132,9 @@ def mean_square_distance(
     n = len(pa)
     if n == 0:
         return 0.0, 0.0
-    sim = Similarity(float(scale), np.asarray(rotation, float), np.asarray(translation, float))
-    err_ab = apply_to_points(sim, pa) - pb
-    err_ba = apply_to_points(invert(sim), pb) - pa
+    sim = Sim3(float(scale), np.asarray(rotation, float), np.asarray(translation, float))
+    err_ab = sim.apply(pa) - pb
+    err_ba = sim.inverse().apply(pb) - pa
     return float(np.sqrt((err_ab**2).sum()) / (2 * n)), float(np.sqrt((err_ba**2).sum()) / (2 * n))
 
 
@@ -189,37 +159,26 @@ def _extent(centres: Array) -> float:
     return med if med > 0 else float(np.sqrt(((centres - centres.mean(0)) ** 2).sum(1).mean()))
 
 
-def _project_to_so3(m: Array) -> Array:
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
-def _angle_deg(cos_trace: Array) -> Array:
-    """Angle of a relative rotation from trace(A^T B) = 1 + 2 cos(angle)."""
-    return np.degrees(np.arccos(np.clip((cos_trace - 1.0) / 2.0, -1.0, 1.0)))
-
-
-def _errors(sim: Similarity, hyp_rot: Array, ca: Array, cb: Array) -> tuple[Array, Array]:
+def _errors(sim: Sim3, hyp_rot: Array, ca: Array, cb: Array) -> tuple[Array, Array]:
     """Centre error (frame b units) and rotation error (degrees) of every camera under ``sim``."""
-    centre_err = np.linalg.norm(apply_to_points(sim, ca) - cb, axis=1)
-    return centre_err, _angle_deg(np.einsum("nab,ab->n", hyp_rot, sim.rotation))
+    centre_err = np.linalg.norm(sim.apply(ca) - cb, axis=1)
+    return centre_err, rotation_angle_deg(hyp_rot, sim.rotation)
 
 
 def _fit(
     mask: Array, hyp_rot: Array, ca: Array, cb: Array, options: SimilarityOptions
-) -> Similarity:
+) -> Sim3:
     """Refit on the inliers (step 3 of the module docstring)."""
     a0 = ca[mask] - ca[mask].mean(0)
     b0 = cb[mask] - cb[mask].mean(0)
-    rotation = _project_to_so3(hyp_rot[mask].sum(0))  # chordal L2 mean
+    rotation = project_to_so3(hyp_rot[mask].sum(0))  # chordal L2 mean
     if options.refit_rotation_on_centres and mask.sum() >= 3:
         sv = np.linalg.svd(a0, compute_uv=False)
         if sv[0] > 0 and sv[1] >= _MIN_SPREAD * sv[0]:
-            rotation = _project_to_so3(b0.T @ a0)  # Horn / Umeyama: max tr(R^T sum b0 a0^T)
+            rotation = project_to_so3(b0.T @ a0)  # Horn / Umeyama: max tr(R^T sum b0 a0^T)
     denom = (a0**2).sum()
     scale = float(np.sqrt((b0**2).sum() / denom)) if denom > 0 else float("nan")
-    return Similarity(scale, rotation, cb[mask].mean(0) - scale * rotation @ ca[mask].mean(0))
+    return Sim3(scale, rotation, cb[mask].mean(0) - scale * rotation @ ca[mask].mean(0))
 
 
 def _ransac(
@@ -248,7 +207,7 @@ def _ransac(
     pred = cb[hyps, None, :] + scales[:, None, None] * np.einsum("kab,kjb->kja", hyp_rot[hyps], d_a)
     centre_err = np.linalg.norm(pred - cb[None], axis=2) / (options.center_threshold * extent_b)
     rot_err = (
-        _angle_deg(np.einsum("kab,jab->kj", hyp_rot[hyps], hyp_rot))
+        rotation_angle_deg(hyp_rot[hyps][:, None], hyp_rot[None])
         / options.rotation_threshold_deg
     )
     inl = (centre_err < 1.0) & (rot_err < 1.0) & (scales > 0)[:, None]

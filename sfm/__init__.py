@@ -42,7 +42,7 @@ Conventions, everywhere:
 - Pixels: pixel centres at integer coordinates (OpenCV).  COLMAP's files and database put the
   image corner at (0, 0): keypoints and principal points are shifted by 0.5 when written and
   read (``sfm.io``), nowhere else.
-- Cameras are COLMAP camera models (``backend.camera_projection``): ``SIMPLE_RADIAL`` with an
+- Cameras are COLMAP camera models (``backend.camera_models``): ``SIMPLE_RADIAL`` with an
   EXIF focal prior (else 1.2 x the longer side) by default, ``PINHOLE`` held fixed for
   intrinsics the user gives.
 - Images are named by their path relative to the image folder; integer ids are the database's.

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from backend.camera_projection import project
+from backend.camera_models import project
 
 SIMPLE_RADIAL = ("SIMPLE_RADIAL", np.array([500.0, 320.0, 240.0, -0.05]))
 
@@ -36,9 +36,21 @@ def ring_scene(model=SIMPLE_RADIAL, n_images=10, n_points=300, noise=0.0, seed=0
         "obs_image": np.repeat(np.arange(n_images), n_points),
         "obs_point": np.tile(np.arange(n_points), n_images),
     }
-    xy, _ = project(**scene)
+    xy = observe(scene)
     scene["obs_xy"] = xy + rng.normal(0.0, noise, xy.shape)
     return scene
+
+
+def observe(scene: dict) -> np.ndarray:
+    """The exact pixel (M, 2) of every observation of ``scene`` (NaN behind its camera)."""
+    x_cam = np.einsum("mij,mj->mi", scene["rotations"][scene["obs_image"]], scene["points"][scene["obs_point"]])
+    x_cam += scene["translations"][scene["obs_image"]]
+    cams = np.asarray(scene["image_camera"])[scene["obs_image"]]
+    xy = np.zeros((len(x_cam), 2))
+    for c in np.unique(cams):
+        sel = cams == c
+        xy[sel] = project(scene["camera_models"][c], scene["camera_params"][c], x_cam[sel])
+    return xy
 
 
 def perturb(scene: dict, seed=1, rot_deg=1.0, trans_frac=0.03, point_sigma=0.05, keep=(0,)) -> dict:

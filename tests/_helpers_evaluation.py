@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.core.camera_models import project
-from sfm.core.geometry import Sim3, look_at, rotation_about_axis
+from backend.camera_models import project
+from backend.geometry import look_at, rotation_about_axis
+from backend.sim3 import Sim3
 from sfm.evaluation.ground_truth import GTPose
 from sfm.core.model import Camera, Image, Reconstruction
 

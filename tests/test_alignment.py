@@ -9,7 +9,8 @@ from _helpers_evaluation import N_CAMS, SIM_EST_FROM_GT, UP, _estimate, _gt_of, 
 
 from sfm.evaluation.alignment import align_centers, default_alignment_threshold, scene_extent
 from sfm.evaluation.metrics import evaluate
-from sfm.core.geometry import look_at, umeyama
+from backend.geometry import look_at
+from backend.sim3 import umeyama
 from sfm.evaluation.ground_truth import gt_from_reconstruction
 from sfm.core.model import Camera, Image, Reconstruction
 

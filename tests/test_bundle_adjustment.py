@@ -13,12 +13,12 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 import pytest
-from _helpers_bundle_adjustment import perturb, ring_scene
+from _helpers_bundle_adjustment import observe, perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
 from backend.ba_problem import BAOptions, BAProblem
 from backend.bundle_adjustment import bundle_adjust, cam_from_world_from_pose3, pose3_from_cam_from_world
-from backend.camera_projection import ds2_from_params, project, reprojection_errors
+from backend.camera_models import ds2_from_params, project
 
 # a longer focal length: with 500 points and 0.5 px noise, pose and focal noise floors are
 # ~0.02 deg and ~0.03 %, well below the tolerances the noisy tests check
@@ -85,31 +85,12 @@ def test_pose_conversions_round_trip_and_agree_with_gtsam_projection():
     for model, (params, camera_type, cal) in cases.items():
         cal = cal or gtsam.Cal3DS2(*ds2_from_params(model, np.array(params)))
         expected = camera_type(pose, cal).project(point)
-        xy, depth = project(
-            [model],
-            [np.array(params)],
-            [0],
-            rotation[None],
-            translation[None],
-            point[None],
-            np.array([0]),
-            np.array([0]),
-        )
+        xy = project(model, np.array(params), (rotation @ point + translation)[None])
         np.testing.assert_allclose(xy[0], expected, atol=1e-9, err_msg=model)
-        assert depth[0] == pytest.approx(4.0)
     # COLMAP's formula by hand: pixel = f u (1 + k r2) + cx for SIMPLE_RADIAL
     u, v = 0.3 / 4.0, -0.2 / 4.0
     radial = 1 - 0.08 * (u * u + v * v)
-    xy, _ = project(
-        ["SIMPLE_RADIAL"],
-        [np.array(cases["SIMPLE_RADIAL"][0])],
-        [0],
-        rotation[None],
-        translation[None],
-        point[None],
-        np.array([0]),
-        np.array([0]),
-    )
+    xy = project("SIMPLE_RADIAL", np.array(cases["SIMPLE_RADIAL"][0]), (rotation @ point + translation)[None])
     np.testing.assert_allclose(
         xy[0], [800 * u * radial + 320.5, 800 * v * radial + 240.0], atol=1e-9
     )
@@ -148,7 +129,7 @@ def test_noisy_rms_matches_the_residual_degrees_of_freedom():
     assert result.final_rms < result.initial_rms
     rms = np.sqrt(
         np.mean(
-            reprojection_errors(
+            BAProblem(
                 **{
                     **truth,
                     "camera_params": result.camera_params,
@@ -156,7 +137,7 @@ def test_noisy_rms_matches_the_residual_degrees_of_freedom():
                     "translations": result.translations,
                     "points": result.points,
                 }
-            )
+            ).reprojection_errors()
             ** 2
         )
     )
@@ -272,7 +253,7 @@ def test_one_fixed_pose_plus_the_scale_prior_fix_the_gauge():
 def test_reprojection_errors_flag_points_behind_the_camera():
     scene = ring_scene(n_images=2, n_points=5)
     scene["points"][3] = 2.0 * centres(scene["rotations"], scene["translations"])[0]  # behind 0
-    errors = reprojection_errors(**scene)
+    errors = BAProblem(**scene).reprojection_errors()
     behind = (scene["obs_image"] == 0) & (scene["obs_point"] == 3)
     assert np.isinf(errors[behind]).all() and np.isfinite(errors[~behind]).all()
 
@@ -330,7 +311,7 @@ def test_camera_groups_share_intrinsics():
         np.array([620.0, 600.0, 330.0, 250.0]),
     ]
     truth["image_camera"] = np.arange(10) % 2
-    truth["obs_xy"] = project(**{k: v for k, v in truth.items() if k != "obs_xy"})[0]
+    truth["obs_xy"] = observe(truth)
     start = perturb(truth)
     start["camera_params"] = [
         truth["camera_params"][0] * [0.96, 1, 1, 0],
@@ -374,8 +355,8 @@ def test_observation_sigmas_weigh_the_observations():
     assert weighted_err < 0.04, (weighted_err, plain_err)
     np.testing.assert_allclose(ones.rotations, plain.rotations, atol=1e-12)
     np.testing.assert_allclose(ones.points, plain.points, atol=1e-10)
-    err = reprojection_errors(**{**noisy, "rotations": weighted.rotations,
-                                 "translations": weighted.translations, "points": weighted.points})
+    err = BAProblem(**{**noisy, "rotations": weighted.rotations,
+                       "translations": weighted.translations, "points": weighted.points}).reprojection_errors()
     assert weighted.final_rms == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-12)
     assert weighted.final_rms > plain.final_rms  # the weighted fit trades pixels for likelihood
     with pytest.raises(ValueError, match="obs_sigma"):

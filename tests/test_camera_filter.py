@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sfm.evaluation.metrics import read_gt_table
+from sfm.evaluation.ground_truth import read_gt_table
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.state import MapperState
 from sfm.stages.payloads import load_payloads

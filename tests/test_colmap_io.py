@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sfm.io import colmap_model as colmap_io
-from sfm.core.geometry import quaternion_to_rotation, rotation_to_quaternion
+from backend.geometry import quaternion_to_rotation, rotation_to_quaternion
 from sfm.core.model import Camera, Image, Reconstruction
 
 

@@ -13,7 +13,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from colmap_on_database import run_colmap_incremental  # noqa: E402
 
 from sfm.io.colmap_model import read_model  # noqa: E402
-from sfm.evaluation.metrics import evaluate, read_gt_table  # noqa: E402
+from sfm.evaluation.metrics import evaluate  # noqa: E402
+from sfm.evaluation.ground_truth import read_gt_table  # noqa: E402
 from sfm.stages.synth import run_synth  # noqa: E402
 from sfm.synthetic.options import SynthOptions  # noqa: E402
 

@@ -17,16 +17,8 @@ import pytest
 from _helpers_database import _quat_wxyz, _raw
 from scipy.spatial.transform import Rotation
 
-from sfm.io.database import (
-    CAMERA_MODEL_IDS,
-    CAMERA_MODEL_NAMES,
-    MAX_IMAGE_ID,
-    Database,
-    TwoViewConfig,
-    TwoViewGeometry,
-    image_ids_from_pair_id,
-    pair_id,
-)
+from sfm.io.database import Database
+from sfm.io.database_schema import CAMERA_MODEL_IDS, CAMERA_MODEL_NAMES, MAX_IMAGE_ID, TwoViewConfig, TwoViewGeometry, image_ids_from_pair_id, pair_id
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -253,7 +245,8 @@ _CHILD = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from sfm.io.database import Database, TwoViewGeometry
+    from sfm.io.database import Database
+    from sfm.io.database_schema import TwoViewGeometry
     db = Database(sys.argv[1])
     cam = db.add_camera("SIMPLE_RADIAL", 100, 80, [90.0, 50.0, 40.0, 0.0])
     a, b = db.add_image("a.jpg", cam), db.add_image("b.jpg", cam)

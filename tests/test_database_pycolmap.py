@@ -10,7 +10,8 @@ import pytest
 from _helpers_database import _quat_wxyz, _raw
 from scipy.spatial.transform import Rotation
 
-from sfm.io.database import CAMERA_MODEL_IDS, Database, TwoViewConfig, TwoViewGeometry
+from sfm.io.database import Database
+from sfm.io.database_schema import CAMERA_MODEL_IDS, TwoViewConfig, TwoViewGeometry
 
 
 def _pycolmap():

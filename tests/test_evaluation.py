@@ -13,12 +13,7 @@ import pytest
 from _helpers_evaluation import N_CAMS, SIM_EST_FROM_GT, _estimate, _gt_of, _ring_scene
 
 from sfm.evaluation.metrics import auc, evaluate, relative_pose_errors
-from sfm.core.geometry import (
-    angle_between_deg,
-    quaternion_to_rotation,
-    rotation_about_axis,
-    rotation_angle_deg,
-)
+from backend.geometry import angle_between_deg, quaternion_to_rotation, rotation_about_axis, rotation_angle_deg
 from sfm.evaluation.ground_truth import GTPose
 from sfm.core.model import Image, Reconstruction
 
@@ -165,7 +160,7 @@ def test_extra_images_not_in_gt_are_only_counted():
 
 # ------------------------------------------------------------------------- pair errors
 def _reference_pair_errors(re, te, rg, tg, registered):
-    """Per pair, straight from the definition (arccos-based helpers of sfm.core.geometry)."""
+    """Per pair, straight from the definition (arccos-based helpers of backend.geometry)."""
     out = []
     for i, j in zip(*np.triu_indices(len(re), 1)):
         if not (registered[i] and registered[j]):
@@ -262,11 +257,11 @@ def test_auc_matches_reference_implementation():
 
 
 def test_absolute_rotation_angles_accurate_at_every_angle():
-    from sfm.evaluation.metrics import _rotation_angles_deg
+    from backend.geometry import rotation_angle_deg
 
     rng = np.random.default_rng(2)
     base = np.stack([quaternion_to_rotation(rng.normal(size=4)) for _ in range(7)])
     angles = np.array([0.0, 1e-7, 0.5, 2.0, 90.0, 179.9999, 180.0])
     deltas = np.stack([rotation_about_axis(rng.normal(size=3), a) for a in angles])
-    measured = _rotation_angles_deg(deltas @ base, base)
+    measured = rotation_angle_deg(deltas @ base, base)
     np.testing.assert_allclose(measured, angles, atol=1e-10, rtol=1e-9)

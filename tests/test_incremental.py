@@ -9,7 +9,8 @@ import pytest
 
 from sfm.cli import main
 from sfm.io.colmap_model import read_model
-from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import read_gt_table
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.stages.map import run_map

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from sfm.execution.local import LocalExecutor
-from sfm.core.camera_models import project
+from backend.camera_models import project
 from sfm.io.database import Database
 from sfm.errors import InputError
-from sfm.core.geometry import look_at, quaternion_to_rotation, rotation_angle_deg
+from backend.geometry import look_at, quaternion_to_rotation, rotation_angle_deg
 from sfm.matching.options import MatchOptions
 from sfm.matching.descriptors import match_descriptors
 from sfm.matching.descriptors import normalize_descriptors

@@ -5,24 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sfm.core.camera_models import (
-    has_bogus_params,
-    params_from_colmap,
-    params_to_colmap,
-    project,
-    unproject,
-)
-from sfm.core.geometry import (
-    Sim3,
+from backend.camera_models import has_bogus_params, project, unproject
+from backend.geometry import (
     look_at,
     quaternion_to_rotation,
     rotation_about_axis,
     rotation_angle_deg,
     rotation_from_rotvec,
     rotation_to_quaternion,
-    umeyama,
 )
+from backend.sim3 import Sim3, umeyama
 from sfm.core.model import INVALID_POINT3D, Camera, Image, Reconstruction
+from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -181,7 +175,7 @@ def test_subset_keeps_ids_and_filters_tracks():
 def test_camera_param_count_checked():
     with pytest.raises(ValueError, match="takes 4 params"):
         Camera(1, "SIMPLE_RADIAL", 10, 10, [1.0, 2.0])
-    with pytest.raises(ValueError, match="unsupported camera model"):
+    with pytest.raises(ValueError, match="camera model .FISHEYE_X. is not supported"):
         Camera(1, "FISHEYE_X", 10, 10, [1.0])
 
 

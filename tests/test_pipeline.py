@@ -10,7 +10,8 @@ import pytest
 from sfm.api import make_options, reconstruct
 from sfm.cli import main
 from sfm.io.colmap_model import read_model
-from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import read_gt_table
 from sfm.viz.recorder import entity_paths
 from sfm.stages.synth import run_synth
 from sfm.synthetic.options import SynthOptions

@@ -8,7 +8,8 @@ from __future__ import annotations
 import pytest
 
 from sfm.api import reconstruct
-from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import read_gt_table
 
 pytestmark = pytest.mark.slow
 

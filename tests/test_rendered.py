@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from sfm.evaluation.metrics import read_gt_table
+from sfm.evaluation.ground_truth import read_gt_table
 from sfm.synthetic.options import RenderOptions
 from sfm.synthetic.rendered import write_rendered_scene
 

@@ -11,14 +11,7 @@ import itertools
 import numpy as np
 import pytest
 
-from backend.similarity import (
-    SimilarityOptions,
-    apply_to_points,
-    apply_to_pose,
-    estimate_similarity,
-    invert,
-    mean_square_distance,
-)
+from backend.similarity import SimilarityOptions, estimate_similarity, mean_square_distance
 
 SCALE = 2.7
 
@@ -282,11 +275,11 @@ def test_helpers_move_cameras_and_points(pair):
     p = pair
     res = estimate_similarity(p["ra"], p["ta"], p["rb"], p["tb"])
     sim = res.sim_b_from_a
-    assert np.allclose(apply_to_points(sim, p["pa"]), p["pb"], atol=1e-9)
+    assert np.allclose(sim.apply(p["pa"]), p["pb"], atol=1e-9)
     for k in range(3):
-        r, t = apply_to_pose(sim, p["ra"][k], p["ta"][k])
+        r, t = sim.transform_pose(p["ra"][k], p["ta"][k])
         assert np.allclose(r, p["rb"][k], atol=1e-12) and np.allclose(t, p["tb"][k], atol=1e-9)
-    back = invert(sim)
-    assert np.allclose(apply_to_points(back, p["pb"]), p["pa"], atol=1e-9)
+    back = sim.inverse()
+    assert np.allclose(back.apply(p["pb"]), p["pa"], atol=1e-9)
     with pytest.raises(ValueError):
         estimate_similarity(p["ra"], p["ta"], p["rb"], p["tb"], p["pa"], p["pb"][:10])

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sfm.io.database import Database, TwoViewConfig
-from sfm.evaluation.metrics import evaluate, read_gt_table
-from sfm.core.geometry import rotation_about_axis
+from sfm.io.database import Database
+from sfm.io.database_schema import TwoViewConfig
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import read_gt_table
+from backend.geometry import rotation_about_axis
 from sfm.errors import InputError
 from sfm.stages.synth import run_synth
 from sfm.synthetic.options import SynthOptions

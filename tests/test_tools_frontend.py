@@ -13,7 +13,7 @@ from sfm.io.database import Database
 from sfm.io.database_schema import TwoViewGeometry
 from sfm.features.options import ExtractOptions
 from sfm.stages.extract import run_extract
-from sfm.core.geometry import look_at
+from backend.geometry import look_at
 from sfm.evaluation.ground_truth import GTPose, read_gt_table
 from sfm.matching.options import MatchOptions
 from sfm.stages.match import run_match

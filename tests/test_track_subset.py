@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from backend.track_subset import select_tracks
-from sfm.core.geometry import look_at
+from backend.geometry import look_at
 from sfm.mapper.triangulation import refine_points
 
 

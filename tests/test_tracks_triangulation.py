@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.core.geometry import look_at
+from backend.geometry import look_at
 from sfm.synthetic.options import SynthOptions
 from sfm.synthetic.scenes import make_scene
 from sfm.synthetic.matching import simulate_matching

@@ -5,15 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sfm.core.camera_models import project
+from backend.camera_models import project
 from sfm.io.database import Database
 from sfm.io.database_schema import CameraRecord, TwoViewConfig
-from sfm.core.geometry import (
-    angle_between_deg,
-    quaternion_to_rotation,
-    rotation_about_axis,
-    rotation_angle_deg,
-)
+from backend.geometry import angle_between_deg, quaternion_to_rotation, rotation_about_axis, rotation_angle_deg
 from sfm.matching.verification import (
     VerifyOptions,
     from_colmap_pixels,

@@ -31,7 +31,7 @@ from bench_frontend import fresh, prepare, run_colmap
 from bench_mapping import row
 
 from sfm.api import reconstruct
-from sfm.evaluation.metrics import read_gt_table
+from sfm.evaluation.ground_truth import read_gt_table
 
 
 def run_graphsfm(images: Path, workspace: Path, options: dict, recording: bool) -> dict:

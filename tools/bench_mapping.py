@@ -26,7 +26,8 @@ import cv2  # noqa: F401 - same reason
 from sfm.clustering.options import ClusterOptions
 from sfm.stages.cluster import run_cluster
 from sfm.io.colmap_model import read_model
-from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import read_gt_table
 from sfm.execution.local import LocalExecutor
 from sfm.mapper.options import MapperOptions
 from sfm.stages.map import run_map

@@ -107,7 +107,7 @@ def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> in
     from resumable_colmap import run_incremental
 
     from sfm.clustering.options import ClusterOptions
-    from sfm.evaluation.metrics import read_gt_table
+    from sfm.evaluation.ground_truth import read_gt_table
 
     logging.basicConfig(level=logging.WARNING)
     data, work = out / "data" / str(n), out / "runs" / str(n) / method

@@ -24,7 +24,8 @@ from pathlib import Path
 import cv2  # noqa: F401 - same reason
 
 from sfm.io.colmap_model import read_model
-from sfm.evaluation.metrics import evaluate, read_gt_table
+from sfm.evaluation.metrics import evaluate
+from sfm.evaluation.ground_truth import read_gt_table
 from sfm.stages.synth import run_synth
 from sfm.synthetic.options import SynthOptions
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sfm.core.camera_models import calibration_matrix, model_spec, project
-from sfm.core.geometry import Sim3
+from backend.camera_models import calibration_matrix, model_spec, reprojection_errors
+from backend.sim3 import Sim3
 
 INVALID_POINT3D = -1
 
@@ -204,31 +204,32 @@ class Reconstruction:
         return np.concatenate(pids), np.concatenate(iids), np.concatenate(kps).astype(np.int64)
 
     def reprojection_errors(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per observation: ``(point3D_ids, error_px)``; vectorised per image."""
-        all_pids, all_err = [], []
+        """Per observation: ``(point3D_ids, error_px)`` (``backend.camera_models``); a point an
+        image observes that is not in the model is a ``KeyError``."""
         known = np.fromiter(self.points3D.keys(), dtype=np.int64, count=len(self.points3D))
         order = np.argsort(known)
         known = known[order]
         xyz_all = np.array([p.xyz for p in self.points3D.values()], dtype=np.float64).reshape(-1, 3)[order]
-        for image in self.images.values():
-            idx = np.flatnonzero(image.point3D_ids != INVALID_POINT3D)
-            if len(idx) == 0:
-                continue
-            pids = image.point3D_ids[idx]
-            at = np.minimum(np.searchsorted(known, pids), max(len(known) - 1, 0))
-            missing = pids[known[at] != pids] if len(known) else pids
-            if len(missing):
-                raise KeyError(f"image {image.name} observes point {missing[0]}, which is not in the model")
-            xyz = xyz_all[at]
-            cam = self.cameras[image.camera_id]
-            x_cam = xyz @ image.cam_from_world_rotation.T + image.cam_from_world_translation
-            proj = project(cam.model, cam.params, x_cam)
-            err = np.linalg.norm(proj - image.keypoints[idx], axis=1)
-            all_pids.append(pids)
-            all_err.append(np.where(np.isfinite(err), err, np.inf))
-        if not all_pids:
+        cam_ids = sorted(self.cameras)
+        cam_index = {c: k for k, c in enumerate(cam_ids)}
+        images = list(self.images.values())
+        rows = [np.flatnonzero(im.point3D_ids != INVALID_POINT3D) for im in images]
+        pids = np.concatenate([im.point3D_ids[r] for im, r in zip(images, rows)] + [np.zeros(0, np.int64)])
+        if len(pids) == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0)
-        return np.concatenate(all_pids), np.concatenate(all_err)
+        at = np.minimum(np.searchsorted(known, pids), max(len(known) - 1, 0))
+        missing = np.flatnonzero(known[at] != pids) if len(known) else np.arange(len(pids))
+        if len(missing):
+            owner = np.repeat(np.arange(len(images)), [len(r) for r in rows])[missing[0]]
+            raise KeyError(f"image {images[owner].name} observes point {pids[missing[0]]}, which is not in the model")
+        err = reprojection_errors(
+            [self.cameras[c].model for c in cam_ids], [self.cameras[c].params for c in cam_ids],
+            np.array([cam_index[im.camera_id] for im in images], dtype=np.int64),
+            np.array([im.cam_from_world_rotation for im in images]).reshape(-1, 3, 3),
+            np.array([im.cam_from_world_translation for im in images]).reshape(-1, 3),
+            np.repeat(np.arange(len(images)), [len(r) for r in rows]), xyz_all[at],
+            np.concatenate([im.keypoints[r] for im, r in zip(images, rows)]))
+        return pids, err
 
     def update_point_errors(self) -> float:
         """Set every point's ``error`` to its mean reprojection error; return the overall mean."""

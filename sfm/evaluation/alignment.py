@@ -1,7 +1,7 @@
 """Robust Sim3 alignment of estimated camera centres onto ground-truth ones.
 
 A reconstruction is only defined up to a similarity, so absolute pose errors are measured after
-a ``gt_from_est`` :class:`~sfm.core.geometry.Sim3` with ``gt_centers ≈ sim.apply(est_centers)``,
+a ``gt_from_est`` :class:`~backend.geometry.Sim3` with ``gt_centers ≈ sim.apply(est_centers)``,
 estimated on camera centres by RANSAC over 3-point Umeyama fits with MSAC scoring and local
 refinement (:func:`align_centers`), so a minority of badly placed cameras does not bias it.
 
@@ -22,7 +22,8 @@ from itertools import combinations
 
 import numpy as np
 
-from sfm.core.geometry import Sim3, umeyama
+from backend.geometry import project_to_so3
+from backend.sim3 import Sim3, umeyama
 
 logger = logging.getLogger(__name__)
 
@@ -168,12 +169,6 @@ def is_collinear(points: np.ndarray, tol: float = 1e-3) -> bool:
     return bool(sv[0] == 0 or sv[1] <= tol * sv[0])
 
 
-def _project_so3(m: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
 def _log_so3(r: np.ndarray) -> np.ndarray:
     """Rotation vectors (N, 3) of rotations (N, 3, 3)."""
     from scipy.spatial.transform import Rotation
@@ -194,7 +189,7 @@ def rotation_median(rotations: np.ndarray, iterations: int = 100) -> np.ndarray:
     def cost(r):
         return np.linalg.norm(_log_so3(np.einsum("ij,njk->nik", r.T, rotations)), axis=1).sum()
 
-    est = _project_so3(rotations.sum(axis=0))
+    est = project_to_so3(rotations.sum(axis=0))
     for _ in range(iterations):
         w = _log_so3(np.einsum("ij,njk->nik", est.T, rotations))
         d = np.linalg.norm(w, axis=1)

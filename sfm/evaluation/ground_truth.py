@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm.core.geometry import quaternion_to_rotation
+from backend.geometry import quaternion_to_rotation
 from sfm.core.model import Reconstruction
 
 logger = logging.getLogger(__name__)

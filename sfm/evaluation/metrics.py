@@ -33,8 +33,9 @@ import numpy as np
 
 from sfm.evaluation.alignment import align_centers, default_alignment_threshold, is_collinear, scene_extent
 from sfm.evaluation.alignment import refine_rotation_with_orientations
-from sfm.core.geometry import Sim3, rotation_to_quaternion
-from sfm.evaluation.ground_truth import GTPose, gt_from_reconstruction, read_gt_table  # noqa: F401
+from backend.geometry import rotation_angle_deg, rotation_to_quaternion
+from backend.sim3 import Sim3
+from sfm.evaluation.ground_truth import GTPose
 from sfm.core.model import Reconstruction
 
 logger = logging.getLogger(__name__)
@@ -44,19 +45,6 @@ _PAIRS_PER_BLOCK = 500_000  # pairs per block: ~20 live float64 arrays of this s
 
 
 # ---------------------------------------------------------------------------------- pose errors
-def _rotation_angles_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
-    """Angles in degrees of ``Q = R_a @ R_b.T`` for stacks of rotations (..., 3, 3).
-
-    ``atan2(|Q - Q^T|_F / (2 sqrt2), (trace Q - 1) / 2)``, i.e. ``atan2(sin, cos)``: accurate at
-    every angle, unlike ``arccos`` of the trace (1e-6 degrees of noise near 0).
-    """
-    q = np.asarray(rot_a) @ np.swapaxes(np.asarray(rot_b), -1, -2)
-    skew = q - np.swapaxes(q, -1, -2)
-    sin = np.sqrt(np.sum(skew * skew, axis=(-2, -1))) / (2.0 * math.sqrt(2.0))
-    cos = (np.trace(q, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arctan2(sin, cos))
-
-
 def _pair_error_blocks(
     est_rotations: np.ndarray,
     est_centers: np.ndarray,
@@ -344,7 +332,7 @@ def evaluate(
     degenerate = False
     if sim is not None:
         aligned_rot = est_rot[reg_idx] @ sim.rotation.T
-        rot_err = _rotation_angles_deg(aligned_rot, gt_rot[reg_idx])
+        rot_err = rotation_angle_deg(aligned_rot, gt_rot[reg_idx])
         c_err = np.linalg.norm(sim.apply(est_c[reg_idx]) - gt_c[reg_idx], axis=1)
         c_err = c_err / extent if extent > 0 else np.full(len(c_err), math.nan)
         rot_errors = {names[k]: float(e) for k, e in zip(reg_idx, rot_err)}

@@ -31,7 +31,7 @@ from typing import IO
 
 import numpy as np
 
-from sfm.core.camera_models import model_spec
+from backend.camera_models import model_spec
 
 logger = logging.getLogger(__name__)
 

@@ -2,8 +2,8 @@
 
 Conventions (COLMAP's, so files are interchangeable):
 
-- Tables as COLMAP 4.2 creates them (schema, id codes and row records: ``sfm.io.database_schema``,
-  re-exported here). Every camera gets a trivial rig (the camera is its reference sensor,
+- Tables as COLMAP 4.2 creates them (schema, id codes and row records: ``sfm.io.database_schema``).
+  Every camera gets a trivial rig (the camera is its reference sensor,
   sensor type 0 = CAMERA, no ``rig_sensors`` row) and every image a one-image frame of that rig,
   ``frame_data = (frame_id, data_id=image_id, sensor_id=camera_id, sensor_type=0)``: the rows
   ``pycolmap.extract_features`` writes.
@@ -17,8 +17,8 @@ Conventions (COLMAP's, so files are interchangeable):
 - PIXELS: graphsfm keypoints use OpenCV's convention (pixel centres at integers); the database
   holds COLMAP's (image corner at (0, 0)). :meth:`Database.write_keypoints` adds 0.5 to x and y,
   :meth:`Database.read_keypoints` subtracts it; camera principal points likewise
-  (``sfm.core.camera_models.params_to_colmap``): no other code needs to know.
-- ``two_view_geometries.config`` holds :class:`TwoViewConfig` codes; a verified pair has
+  (``backend.camera_models.params_to_colmap``): no other code needs to know.
+- ``two_view_geometries.config`` holds :class:`~sfm.io.database_schema.TwoViewConfig` codes; a verified pair has
   config >= 2 (CALIBRATED) and enough inliers.
 
 While open the file is in WAL mode (synchronous=NORMAL: a killed process never corrupts it and
@@ -37,7 +37,8 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from sfm.core.camera_models import CAMERA_MODELS, params_from_colmap, params_to_colmap
+from backend.camera_models import CAMERA_MODELS
+from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 from sfm.io.database_schema import (
     CAMERA_MODEL_IDS,
     CAMERA_MODEL_NAMES,
@@ -48,7 +49,6 @@ from sfm.io.database_schema import (
     SENSOR_TYPE_CAMERA,
     CameraRecord,
     ImageRecord,
-    TwoViewConfig,  # noqa: F401 - re-exported
     TwoViewGeometry,
     image_ids_from_pair_id,
     pair_id,

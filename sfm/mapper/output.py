@@ -7,7 +7,7 @@ import itertools
 
 import numpy as np
 
-from sfm.core.camera_models import calibration_matrix
+from backend.camera_models import calibration_matrix
 from sfm.mapper.bundle_adjuster import BundleAdjuster
 from sfm.mapper.state import MapperState
 from sfm.core.model import Camera, Image, Point3D, Reconstruction

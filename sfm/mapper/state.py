@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from sfm.core.camera_models import has_bogus_params, project, unproject
+from backend.camera_models import has_bogus_params, reprojection_errors, unproject
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.options import MapperOptions
 from sfm.features.sift import localization_sigma
@@ -23,7 +23,6 @@ from sfm.mapper.triangulation import depths, max_triangulation_angles, triangula
 
 log = logging.getLogger(__name__)
 
-_ERROR_ROWS = 1_000_000  # reprojection errors computed this many rows at a time
 # Track rows triangulated or refined at once: the per-row temporaries stay around 100 MB.
 ROW_CHUNK = 250_000
 MAX_REG_TRIALS = 3  # failures after which a stalled model stops retrying an image (COLMAP's max_reg_trials)
@@ -173,21 +172,9 @@ class MapperState:
         return -np.einsum("nji,nj->ni", self.R[images], self.t[images])
 
     def reprojection_errors(self, rows: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """Pixel error of each row against the point ``xyz`` (per row); inf behind the camera.
-        Computed ``_ERROR_ROWS`` rows at a time (a rotation per row is 72 bytes)."""
-        if len(rows) > _ERROR_ROWS:
-            return np.concatenate([self.reprojection_errors(rows[a : a + _ERROR_ROWS], xyz[a : a + _ERROR_ROWS])
-                                   for a in range(0, len(rows), _ERROR_ROWS)])
-        img = self.obs_image[rows]
-        x_cam = np.einsum("nij,nj->ni", self.R[img], xyz) + self.t[img]
-        err = np.full(len(rows), np.inf)
-        cams = self.cam_index[img]
-        for c in np.unique(cams):
-            sel = np.flatnonzero(cams == c)
-            px = project(self.priors[c].model, self.params[c], x_cam[sel])
-            err[sel] = np.linalg.norm(px - self.obs_px[rows[sel]], axis=1)
-        err[~np.isfinite(err) | (x_cam[:, 2] <= 0)] = np.inf
-        return err
+        """Pixel error of each row against the point ``xyz`` (per row); inf behind the camera."""
+        return reprojection_errors([p.model for p in self.priors], self.params, self.cam_index, self.R, self.t,
+                                   self.obs_image[rows], xyz, self.obs_px[rows])
 
     # ------------------------------------------------------------------ initial pair
     def start_model(self, i: int, j: int, R: np.ndarray, t: np.ndarray) -> None:
@@ -323,7 +310,7 @@ class MapperState:
     # ------------------------------------------------------------------ filtering
     def drop_degenerate_cameras(self) -> None:
         """COLMAP's image filter after a global BA: the images of a camera whose refined
-        intrinsics became bogus (``sfm.camera_models.has_bogus_params``; a camera seen by a
+        intrinsics became bogus (``backend.camera_models.has_bogus_params``; a camera seen by a
         handful of observations can drift there) leave the model, and the camera returns to
         its prior, so one bad camera neither stays in the model nor poisons the others'
         points with non-finite coordinates.  An image dropped this way may register again.

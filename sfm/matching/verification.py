@@ -2,7 +2,7 @@
 
 For the raw matches of a pair:
 
-1. Both cameras have a focal prior (and a model ``sfm.core.camera_models`` knows): essential matrix
+1. Both cameras have a focal prior (and a model ``backend.camera_models`` knows): essential matrix
    with MAGSAC (``cv2.findEssentialMat`` with :class:`cv2.UsacParams`) on undistorted normalised
    coordinates, threshold ``max_error_px / mean focal``; the relative pose ``cam2_from_cam1`` from
    ``cv2.recoverPose`` (cheirality), then refined by minimising the robust (Cauchy, 1 px) Sampson
@@ -39,9 +39,9 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from sfm.core.camera_models import CAMERA_MODELS, calibration_matrix, focal_lengths, unproject
+from backend.camera_models import CAMERA_MODELS, calibration_matrix, focal_lengths, unproject
 from sfm.io.database_schema import TwoViewConfig, TwoViewGeometry
-from sfm.core.geometry import rotation_from_rotvec, rotation_to_quaternion
+from backend.geometry import rotation_from_rotvec, rotation_to_quaternion
 
 # Pixel convention change: x_opencv = T @ x_colmap (COLMAP puts the image corner at (0, 0)).
 _T_OPENCV_FROM_COLMAP = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])

@@ -8,7 +8,7 @@ camera the parameters of the model that registered most of its images.
 from __future__ import annotations
 
 from graph.merge_plan import MergePlan
-from sfm.core.geometry import Sim3
+from backend.sim3 import Sim3
 from sfm.merge.cluster_graph import LocalModel
 
 

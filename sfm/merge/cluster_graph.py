@@ -17,7 +17,6 @@ import numpy as np
 
 from backend.similarity import SimilarityOptions, estimate_similarity
 from graph.merge_plan import MergePlan, plan_merges
-from sfm.core.geometry import Sim3
 from sfm.core.model import INVALID_POINT3D, Reconstruction
 from sfm.merge.options import MergeOptions
 
@@ -65,7 +64,7 @@ def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: i
             if res is None:
                 continue
             edges[(u, v)] = {
-                "sim": Sim3(res.scale, res.rotation, res.translation),
+                "sim": res.sim_b_from_a,
                 "msd": float(res.msd), "inliers": int(res.num_inliers), "common_cameras": len(names),
                 "common_points": int(res.num_points), "used": bool(res.msd <= options.max_msd),
             }

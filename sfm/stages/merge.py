@@ -16,7 +16,7 @@ from pathlib import Path
 
 from backend.memory import return_freed_memory
 from graph.merge_plan import MergePlan
-from sfm.core.geometry import rotation_to_quaternion
+from backend.geometry import rotation_to_quaternion
 from sfm.errors import InputError, NoModelError
 from sfm.io.colmap_model import read_model
 from sfm.io.ledger import Ledger, fingerprint, options_record

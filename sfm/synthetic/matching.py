@@ -132,9 +132,10 @@ def simulate_matching(scene: SyntheticScene, opts: SynthOptions) -> list[Synthet
 def write_database(scene: SyntheticScene, pairs: list[SyntheticPair], path: Path) -> None:
     """Keypoints, raw matches and verified two-view geometries (config CALIBRATED, E and F,
     relative pose) into a COLMAP-schema database; one transaction, so it is all or nothing."""
-    from sfm.core.camera_models import params_to_colmap
-    from sfm.io.database import Database, TwoViewConfig, TwoViewGeometry
-    from sfm.core.geometry import rotation_to_quaternion
+    from sfm.io.pixel_convention import params_to_colmap
+    from sfm.io.database import Database
+    from sfm.io.database_schema import TwoViewConfig, TwoViewGeometry
+    from backend.geometry import rotation_to_quaternion
 
     K_colmap = scene.K.copy()
     K_colmap[:2, 2] = params_to_colmap("PINHOLE", [1, 1, K_colmap[0, 2], K_colmap[1, 2]])[2:]

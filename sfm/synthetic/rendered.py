@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sfm.core.geometry import look_at, rotation_to_quaternion
+from backend.geometry import look_at, rotation_to_quaternion
 from sfm.synthetic.options import RenderOptions
 
 log = logging.getLogger(__name__)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sfm.core.geometry import look_at, rotation_about_axis
+from backend.geometry import look_at, rotation_about_axis
 from sfm.synthetic.options import SynthOptions
 
 log = logging.getLogger(__name__)
@@ -229,7 +229,7 @@ def make_scene(opts: SynthOptions) -> SyntheticScene:
 # ---------------------------------------------------------------------------------- output
 def write_gt_table(scene: SyntheticScene, path: Path, image_ids: list[int] | None = None) -> None:
     """``IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ`` (the shared GT format)."""
-    from sfm.core.geometry import rotation_to_quaternion
+    from backend.geometry import rotation_to_quaternion
 
     K = scene.K
     lines = ["# IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ (cam_from_world, OpenCV pixels)"]

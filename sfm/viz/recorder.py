@@ -167,7 +167,7 @@ def log_camera(recorder: Recorder, entity: str, rotation: np.ndarray, translatio
         return
     import rerun as rr
 
-    from sfm.core.geometry import rotation_to_quaternion
+    from backend.geometry import rotation_to_quaternion
 
     world_from_cam = rotation.T
     q = rotation_to_quaternion(world_from_cam)

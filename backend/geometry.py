@@ -1,17 +1,13 @@
-"""Small rigid-geometry helpers shared by the application layer.
+"""Rotations and camera poses: quaternions, angles, projection onto SO(3), look-at poses.
 
-Conventions (see DESIGN.md):
+The one implementation of each, for ``sfm`` and ``backend`` alike.  Conventions:
 
 * A pose ``cam_from_world`` maps world points into the camera frame, ``x_cam = R @ X + t``,
   exactly as COLMAP's ``images.txt`` stores it.  The camera centre is ``C = -R.T @ t``.
 * Quaternions are ``(w, x, y, z)`` (COLMAP order), unit norm, ``w >= 0`` after normalisation.
-* A similarity ``Sim3`` named ``b_from_a`` maps points of frame ``a`` into frame ``b``:
-  ``X_b = s * R @ X_a + t``.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -52,16 +48,29 @@ def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
-def rotation_angle_deg(rotation: np.ndarray) -> float:
-    """Angle in degrees of a rotation matrix (0 for identity), robust near 0 and 180."""
-    cos = (np.trace(rotation) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+def rotation_angle_deg(rot_a: np.ndarray, rot_b: np.ndarray | None = None) -> np.ndarray | float:
+    """Angle in degrees of ``Q = R_a @ R_b.T`` (of ``R_a`` when ``R_b`` is None), for one
+    rotation or stacks (..., 3, 3); a float for one rotation.
+
+    ``atan2(|Q - Q^T|_F / (2 sqrt 2), (trace Q - 1) / 2)``, i.e. ``atan2(sin, cos)``: accurate at
+    every angle, unlike ``arccos`` of the trace (1e-6 degrees of noise near 0).
+    """
+    q = np.asarray(rot_a, dtype=np.float64)
+    if rot_b is not None:
+        q = q @ np.swapaxes(np.asarray(rot_b, dtype=np.float64), -1, -2)
+    skew = q - np.swapaxes(q, -1, -2)
+    sin = np.sqrt(np.sum(skew * skew, axis=(-2, -1))) / (2.0 * np.sqrt(2.0))
+    cos = (np.trace(q, axis1=-2, axis2=-1) - 1.0) / 2.0
+    angle = np.degrees(np.arctan2(sin, cos))
+    return float(angle) if np.ndim(angle) == 0 else angle
 
 
-def rotation_angles_deg(rotations_a: np.ndarray, rotations_b: np.ndarray) -> np.ndarray:
-    """Angles in degrees of ``R_a @ R_b.T`` for stacks of rotations of shape (N, 3, 3)."""
-    traces = np.einsum("nij,nij->n", rotations_a, rotations_b)
-    return np.degrees(np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)))
+def project_to_so3(m: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a 3x3 matrix in the Frobenius norm (SVD, reflection corrected):
+    the chordal L2 mean of rotations is the projection of their sum."""
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 def angle_between_deg(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -107,61 +116,3 @@ def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.
     y = np.cross(z, x)
     rotation = np.stack([x, y, z])
     return rotation, -rotation @ np.asarray(center, float)
-
-
-@dataclass(frozen=True)
-class Sim3:
-    """Similarity ``b_from_a``: ``X_b = scale * rotation @ X_a + translation``."""
-
-    scale: float = 1.0
-    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
-    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        """Map points of shape (N, 3) or (3,)."""
-        return self.scale * (np.asarray(points) @ self.rotation.T) + self.translation
-
-    def inverse(self) -> Sim3:
-        r_inv = self.rotation.T
-        return Sim3(1.0 / self.scale, r_inv, -(r_inv @ self.translation) / self.scale)
-
-    def compose(self, other: Sim3) -> Sim3:
-        """``self ∘ other``: apply ``other`` first (``c_from_a = c_from_b.compose(b_from_a)``)."""
-        return Sim3(
-            self.scale * other.scale,
-            self.rotation @ other.rotation,
-            self.scale * (self.rotation @ other.translation) + self.translation,
-        )
-
-    def transform_pose(self, rotation: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """New ``cam_from_world`` after the world is mapped by this similarity.
-
-        With ``X_new = s R_s X + t_s``: ``R' = R R_s^T`` and ``t' = s t - R' t_s`` so that the
-        camera sees the same points (scaled by ``s``).
-        """
-        new_rotation = rotation @ self.rotation.T
-        return new_rotation, self.scale * translation - new_rotation @ self.translation
-
-    def matrix(self) -> np.ndarray:
-        m = np.eye(4)
-        m[:3, :3] = self.scale * self.rotation
-        m[:3, 3] = self.translation
-        return m
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Sim3:
-    """Least-squares similarity ``dst ≈ s R src + t`` (Umeyama 1991) for (N, 3) arrays, N >= 3
-    (N = 2 determines it up to a rotation about the baseline; the minimal-norm one is returned)."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    s0, d0 = src - mu_s, dst - mu_d
-    cov = d0.T @ s0 / len(src)
-    u, sig, vt = np.linalg.svd(cov)
-    d = np.ones(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[2] = -1
-    rotation = u @ np.diag(d) @ vt
-    var_s = (s0**2).sum() / len(src)
-    scale = float((sig * d).sum() / var_s) if with_scale and var_s > 0 else 1.0
-    return Sim3(scale, rotation, mu_d - scale * rotation @ mu_s)
