@@ -21,7 +21,7 @@ def test_end_to_end_table_has_both_pipelines_evaluated(tmp_path, capsys):
     write_rendered_scene(tmp_path / "scene", RenderOptions(num_images=10, seed=4))
     gt = tmp_path / "scene" / "gt" / "cameras_gt_opencv.txt"
     assert main(["--images", str(tmp_path / "scene" / "images"), "--gt", str(gt), "--no-recording",
-                 "--repeat", "2", "--out", str(tmp_path / "out")]) == 0
+                 "--repeat", "2", "--out", str(tmp_path / "out"), "--page", str(tmp_path / "BENCHMARKS.md")]) == 0
     out = capsys.readouterr().out
     lines = [line for line in out.splitlines() if line.startswith("| ")]
     header = [c.strip() for c in lines[0].strip("|").split("|")]
@@ -33,7 +33,9 @@ def test_end_to_end_table_has_both_pipelines_evaluated(tmp_path, capsys):
     assert (tmp_path / "out" / "run2" / "graphsfm" / "sparse" / "0").is_dir()
     ratio_line = next(line for line in out.splitlines() if line.startswith("total time graphsfm / COLMAP:"))
     assert "median" in ratio_line and len(ratio_line.split(":")[1].split("(")[0].split(",")) == 2
+    assert "<!-- bench:endtoend-scene-images -->" in (tmp_path / "BENCHMARKS.md").read_text()
     for r in rows:
+        assert r["date"] and r["machine"] and r["code"]
         assert int(r["registered"]) == 10  # a 10-image rendered arc: both register everything
         assert float(r["med_rot_deg"]) < 0.5
         parts = float(r["extract_s"]) + float(r["match_s"]) + float(r["map_s"])

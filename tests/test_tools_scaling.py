@@ -65,9 +65,13 @@ def test_report_only_runs_nothing_and_reads_the_cache(tmp_path):
     cache = tmp_path / "runs" / "500" / "graphsfm-2.json"
     cache.parent.mkdir(parents=True)
     cache.write_text('{"images": 500, "method": "graphsfm-2", "time_s": 50.0, "registered": 500}')
-    assert main(["--out", str(tmp_path), "--sizes", "500", "1000", "--methods", "graphsfm-2", "--report-only"]) == 0
+    page = tmp_path / "BENCHMARKS.md"
+    assert main(["--out", str(tmp_path), "--sizes", "500", "1000", "--methods", "graphsfm-2", "--report-only",
+                 "--page", str(page)]) == 0
     text = (tmp_path / "scaling.md").read_text()
     assert "| 500 | graphsfm-2 | 50.0 |" in text and "| 1000 | graphsfm-2 | not run |" in text
+    section = page.read_text()  # the benchmarks page's section holds the same table
+    assert "<!-- bench:scaling -->" in section and "| 500 | graphsfm-2 | 50.0 |" in section
     assert not (tmp_path / "data").exists()  # no scene was generated, nothing was mapped
 
 
@@ -109,7 +113,7 @@ def test_the_table_shows_cached_rows_of_methods_not_run_this_time(tmp_path):
     (runs / "colmap-incremental" / "progress.txt").write_text("10.0 250\n")  # its log, from before it ended
     (runs / "colmap-incremental.json").write_text('{"images": 500, "method": "colmap-incremental", "time_s": 200.0}')
     (runs / "graphsfm-2.json").write_text('{"images": 500, "method": "graphsfm-2", "time_s": 50.0}')
-    assert main(["--out", str(tmp_path), "--sizes", "500", "--methods", "graphsfm-2", "--report-only"]) == 0
+    assert main(["--out", str(tmp_path), "--sizes", "500", "--methods", "graphsfm-2", "--report-only", "--no-page"]) == 0
     text = (tmp_path / "scaling.md").read_text()
     assert "| 500 | colmap-incremental | 200.0 |" in text and "stopped unfinished" not in text
     assert "| 500 | graphsfm-2 | 50.0 |" in text and "| 0.25 |" in text

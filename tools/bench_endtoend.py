@@ -29,6 +29,7 @@ import cv2  # noqa: F401 - same reason
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_frontend import fresh, prepare, run_colmap
 from bench_mapping import row
+from benchmarks_page import add_page_arguments, markdown_table, peer_version, publish, run_context
 
 from sfm.api import reconstruct
 from sfm.evaluation.ground_truth import read_gt_table
@@ -76,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=1, help="run both sides N times, alternating which goes "
                         "first; prints each ratio and the median")
     parser.add_argument("--out", type=Path, help="output folder (default: a new temporary folder)")
+    add_page_arguments(parser)
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be at least 1")
@@ -87,23 +89,26 @@ def main(argv: list[str] | None = None) -> int:
     options = {k: v for k, v in (("intrinsics", args.intrinsics), ("max_cluster_size", args.max_cluster_size))
                if v is not None}
     rows, ratios = [], []
+    context = run_context()
     for i in range(args.repeat):
         where = out if args.repeat == 1 else out / f"run{i + 1}"
         ours = lambda: run_graphsfm(args.images, where / "graphsfm", options, not args.no_recording)  # noqa: E731
         peer = lambda: run_peer(args.images, where / "colmap", args.intrinsics, threads)  # noqa: E731
         runs = [ours(), peer()] if i % 2 == 0 else list(reversed([peer(), ours()]))
-        for run in runs:
+        ratios.append(runs[0]["total"] / runs[1]["total"])
+        for run, ours_side in zip(runs, (True, False)):
             r = row(run["label"], run["model"], run["total"], gt)
             run_column = {"run": i + 1} if args.repeat > 1 else {}
-            rows.append({**run_column, "method": r.pop("method"), **{k: round(v, 1) for k, v in run["stages"].items()}, **r})
-        ratios.append(runs[0]["total"] / runs[1]["total"])
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    print(f"## End to end: {args.images} ({threads} threads each; workspaces in {out})\n")
-    print("| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
-    for r in rows:
-        print("| " + " | ".join(str(r.get(k, "")) for k in keys) + " |")
-    print(f"\ntotal time graphsfm / COLMAP: {', '.join(f'{x:.2f}' for x in ratios)}"
-          + (f" (median {statistics.median(ratios):.2f})" if len(ratios) > 1 else ""))
+            ratio = {"ratio": round(ratios[-1], 2) if ours_side else ""}
+            code = {"code": context["code"] if ours_side else peer_version()}
+            rows.append({**run_column, "method": r.pop("method"), **{k: round(v, 1) for k, v in run["stages"].items()},
+                         **r, **ratio, "date": context["date"], "machine": context["machine"], **code})
+    summary = (f"total time graphsfm / COLMAP: {', '.join(f'{x:.2f}' for x in ratios)}"
+               + (f" (median {statistics.median(ratios):.2f})" if len(ratios) > 1 else ""))
+    text = f"{markdown_table(rows)}\n\n{summary}"
+    print(f"## End to end: {args.images} ({threads} threads each; workspaces in {out})\n\n{text}")
+    publish(args, f"endtoend-{args.images.resolve().parent.name}-{args.images.name}",
+            f"End to end from the images: {args.images.resolve().parent.name}", text)
     return 0
 
 

@@ -37,6 +37,7 @@ import cv2  # noqa: F401 - same reason
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_page import add_page_arguments, peer_version, publish, run_context
 from check_matches import check_matches
 
 from sfm.io.database import Database
@@ -282,6 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--map", action="store_true", help="run pycolmap.incremental_mapping on both databases"
     )
+    add_page_arguments(parser)
     args = parser.parse_args(argv)
     setup = prepare(args.images, args.out, "graphsfm_bench_frontend_")
     if setup is None:
@@ -297,14 +299,18 @@ def main(argv: list[str] | None = None) -> int:
         for run in runs:
             map_with_colmap(run, args.images, threads)
 
-    print(f"## Front-end: {args.images} ({threads} threads each; workspaces in {out})\n")
-    print(table(runs))
-    print(
-        f"\nratio of total time graphsfm / COLMAP: {ours.t_total / peer.t_total:.2f} "
+    context = run_context()
+    ratio = (
+        f"ratio of total time graphsfm / COLMAP: {ours.t_total / peer.t_total:.2f} "
         f"(extract {ours.t_extract / peer.t_extract:.2f}, match {ours.t_match / peer.t_match:.2f})"
     )
+    stamp = f"Measured {context['date']} on {context['machine']}; graphsfm at {context['code']}, {peer_version()}."
+    text = f"{table(runs)}\n\n{ratio}\n\n{stamp}"
+    print(f"## Front-end: {args.images} ({threads} threads each; workspaces in {out})\n\n{text}")
     for line in pair_differences(ours, peer) + ours.notes + peer.notes:
         print(line)
+    name = args.images.resolve().parent.name
+    publish(args, f"frontend-{name}", f"Extract and match: {name}", text)
     return 0
 
 

@@ -23,6 +23,9 @@ from pathlib import Path
 
 import cv2  # noqa: F401 - same reason
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_page import add_page_arguments, markdown_table, peer_version, publish, run_context  # noqa: E402
+
 from sfm.clustering.options import ClusterOptions
 from sfm.stages.cluster import run_cluster
 from sfm.io.colmap_model import read_model
@@ -92,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=0, help="graphsfm cluster workers (0: all cores)")
     parser.add_argument("--global", dest="global_", action="store_true", help="also run pycolmap's global mapper")
     parser.add_argument("--out", type=Path, help="where to put the runs (default: a temporary folder)")
+    add_page_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     db = args.workspace / "database.db"
@@ -106,13 +110,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.global_:
         model, seconds = run_colmap(db, out / "colmap_global", "global")
         rows.append(row("pycolmap global", model, seconds, gt))
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    print(f"database: {db}  ({len(gt) if gt else '?'} GT images)")
-    print("| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
-    for r in rows:
-        print("| " + " | ".join(str(r.get(k, "")) for k in keys) + " |")
+    context = run_context()
+    for k, r in enumerate(rows):
+        r.update({"date": context["date"], "machine": context["machine"],
+                  "code": context["code"] if k == 0 else peer_version()})
     ratio = rows[0]["time_s"] / rows[1]["time_s"] if rows[1]["time_s"] else float("nan")
-    print(f"\ngraphsfm time / pycolmap incremental time = {ratio:.2f}")
+    text = f"{markdown_table(rows)}\n\ngraphsfm time / pycolmap incremental time = {ratio:.2f}"
+    print(f"database: {db}  ({len(gt) if gt else '?'} GT images)\n{text}")
+    name = args.workspace.resolve().name
+    publish(args, f"mapping-{name}" + (f"-s{args.max_cluster_size}" if args.max_cluster_size else ""),
+            f"Mapping from one database: {name}" + (f", --max-cluster-size {args.max_cluster_size}"
+                                                     if args.max_cluster_size else ""), text)
     return 0
 
 

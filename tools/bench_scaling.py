@@ -18,6 +18,7 @@ them from the cached results alone (say, after runs of different sizes or method
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import platform
@@ -27,6 +28,9 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_page import add_page_arguments, machine, publish  # noqa: E402
 
 METHODS = ("graphsfm-1", "graphsfm-2", "colmap-incremental", "colmap-global")
 PEERS = ("colmap-incremental", "colmap-global")
@@ -129,7 +133,7 @@ def one_run(out: Path, n: int, method: str, budget_s: float | None = None) -> in
             read_gt_table(data / "gt" / "cameras_gt_opencv.txt"))
     result = {"images": n, **{k: r[k] for k in ("method", "time_s", "registered", "points", "med_rot_deg", "auc@1")
                               if k in r}, **extra,
-              "code": code_version(method)}
+              "code": code_version(method), "date": datetime.date.today().isoformat(), "machine": machine()}
     (work / "database.db").unlink()
     (work / "result.json").write_text(json.dumps(result))
     return 0
@@ -156,7 +160,7 @@ def unfinished(out: Path, n: int, method: str) -> str:
 
 def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | None = None) -> str:
     head = ["images", "method", "time_s", "peak_rss_gb", "registered", "points", "med_rot_deg", "auc@1",
-            "time / colmap-incremental", "code"]
+            "time / colmap-incremental", "code", "date", "machine"]
     machine = (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
                f"Python {platform.python_version()}; command: python tools/bench_scaling.py --out {out} "
                f"--sizes {' '.join(map(str, sizes))}")
@@ -168,10 +172,11 @@ def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | N
             if r is None:
                 skipped = m in PEERS and skip_peers_above is not None and n > skip_peers_above
                 why = f"skipped (peers above {skip_peers_above} images)" if skipped else unfinished(out, n, m)
-                lines.append(f"| {n} | {m} | {why} | | | | | | | |")
+                lines.append(f"| {n} | {m} | {why} |" + " |" * (len(head) - 3))
                 continue
             ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
-            cells = [str(r.get(k, "")) for k in head[:-2]] + [ratio, r.get("code", "not recorded")]
+            cells = [str(r.get(k, "")) for k in head[:-4]] + [ratio, r.get("code", "not recorded"),
+                                                              r.get("date", "not recorded"), r.get("machine", "")]
             lines.append("| " + " | ".join(cells) + " |")
     resumed = [f"{m} at {n} images ran in {r['segments']} segments (stopped at --peer-budget and resumed from "
                "its snapshots; its time is their sum)" for (n, m), r in sorted(results.items()) if r.get("segments", 1) > 1]
@@ -248,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
                              "it from its last snapshot (its time is the sum of the segments)")
     parser.add_argument("--run", nargs=2, metavar=("N", "METHOD"), help=argparse.SUPPRESS)  # the child
     parser.add_argument("--budget", type=float, help=argparse.SUPPRESS)  # the child's --peer-budget
+    add_page_arguments(parser)
     args = parser.parse_args(argv)
     out = args.out.resolve()
     if args.run:
@@ -276,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     if results:
         plot(out, results)
+        publish(args, "scaling", "Time and memory against the number of images (synthetic aerial, 20% outlier matches)",
+                text)
     return 0
 
 

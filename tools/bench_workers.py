@@ -20,6 +20,9 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_page import add_page_arguments, publish, run_context  # noqa: E402
+
 from sfm.clustering.options import ClusterOptions
 from sfm.stages.cluster import run_cluster
 from sfm.execution.local import LocalExecutor
@@ -53,7 +56,8 @@ def make_executor(kind: str, workers: int):
 
 
 def table(rows: list[dict]) -> str:
-    head = ["executor", "workers", "time_s", "speedup", "registered_in_clusters", "workers_seen", "failed_clusters"]
+    head = ["executor", "workers", "time_s", "speedup", "registered_in_clusters", "workers_seen", "failed_clusters",
+            "date", "machine", "code"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(str(r.get(k, "")) for k in head) + " |" for r in rows]
     return "\n".join(lines)
@@ -67,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts (default 1 2)")
     parser.add_argument("--executors", nargs="+", default=["local", "dask"], choices=["local", "dask"])
     parser.add_argument("--out", help="folder for bench_workers.md and .json")
+    add_page_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     work = Path(args.workspace)
@@ -74,17 +79,20 @@ def main(argv: list[str] | None = None) -> int:
         run_synth(work, SynthOptions(scene="aerial", num_images=args.images, outlier_ratio=0.2, seed=0))
     clusters = run_cluster(work, ClusterOptions(max_cluster_size=args.max_cluster_size)).num_clusters
     print(f"{work}: {clusters} clusters (S_max {args.max_cluster_size})", flush=True)
-    rows = []
+    rows, context = [], run_context()
     for kind in args.executors:
         base = None
         for n in args.workers:
             r = {"executor": kind, "workers": n, **time_map(work, make_executor(kind, n))}
             base = base or r["time_s"]
             r["speedup"] = round(base / r["time_s"], 2)
+            r.update(context)
             rows.append(r)
             print(json.dumps(r), flush=True)
     text = table(rows)
     print(text)
+    publish(args, "workers", "The local-SfM stage with 1 and 2 workers, local and Dask",
+            f"{work.name}: {clusters} clusters (S_max {args.max_cluster_size})\n\n{text}")
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
