@@ -156,8 +156,8 @@ def _spectral_kway(adj: sp.csr_matrix, k: int, seed: int) -> np.ndarray:
     """K-way normalized spectral clustering of a connected graph (Alg. 1, line 2)."""
     if k <= 1:
         return np.zeros(adj.shape[0], dtype=np.int64)
-    # imported here: scikit-learn takes a second or two to import, and a scene that fits in
-    # one cluster never gets this far
+    # imported here: scikit-learn is slow to import, and a scene that fits in one cluster
+    # never gets this far
     from sklearn.cluster import SpectralClustering
 
     model = SpectralClustering(

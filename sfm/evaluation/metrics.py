@@ -288,8 +288,8 @@ def evaluate(
 
     ``alignment_threshold`` (GT units) defaults to :func:`default_alignment_threshold` of all GT
     centres; ``seed`` drives the alignment's RANSAC.  Registered images whose names are not in
-    ``gt`` are only counted.  Work and memory for the pairs are streamed in blocks (4,000 images,
-    8M pairs: a few seconds, well under 1 GB).
+    ``gt`` are only counted.  The N(N-1)/2 pairs are streamed in blocks of
+    ``_PAIRS_PER_BLOCK``, so memory stays bounded whatever the number of images.
     """
     thresholds = [float(t) for t in auc_thresholds]
     _AucAccumulator(thresholds)  # validates the thresholds before any work

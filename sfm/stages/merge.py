@@ -112,7 +112,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         components.append((plan, poses, params))
     t_merge = time.perf_counter() - t0
     num_local, num_edges = len(models), len(edges)
-    del models, edges  # their Python point objects: ~1.7 KB per local point, not needed any more
+    del models, edges  # their Python point objects (one per local point): not needed any more
     return_freed_memory()
 
     recorder.stage("refine")

@@ -48,8 +48,8 @@ class Recorder:
         self._opening: threading.Thread | None = None
         if self.path is None:
             return
-        # Opening the stream imports the Rerun SDK (about 0.3 s): a thread does it while the
-        # caller goes on (extraction and matching log nothing); the first use waits for it.
+        # Opening the stream imports the Rerun SDK, which takes a while: a thread does it while
+        # the caller goes on (extraction and matching log nothing); the first use waits for it.
         self._opening = threading.Thread(target=self._open, args=(workspace, spawn), daemon=True)
         self._opening.start()
 
