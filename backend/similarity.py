@@ -1,7 +1,7 @@
 """Pairwise similarity between two local models from their common cameras (paper section 3.2.1),
 and the residual error that weights the cluster-graph edge (section 3.2.2, Eq. 9-10).
 
-DESIGN.md step 7. Conventions: poses are ``cam_from_world`` (x_cam = R X + t), camera centre
+Conventions: poses are ``cam_from_world`` (x_cam = R X + t), camera centre
 C = -R^T t. A similarity ``b_from_a`` maps X_b = s R X_a + t; a camera k registered in both models
 then satisfies R_b,k = R_a,k R^T and C_b,k = s R C_a,k + t. Arrays in, frozen dataclasses out;
 this module imports neither ``sfm`` nor ``graph``.
@@ -95,7 +95,7 @@ class SimilarityResult:
         divided by the inlier cameras' extent in its target frame (b, resp. a).
     msd: max(mse_ab, mse_ba), Eq. 10 (normalised, symmetric): the edge weight.
     num_points: common 3D points given; the MSD is computed over them plus the inlier camera
-        centres (DESIGN.md step 7: "over the common 3D points and common cameras").
+        centres (the common cameras are common points of the two models too).
     extent_a, extent_b: extent of the inlier cameras' centres in each frame (median distance to
         their geometric median), the MSD normalisers.
     """
@@ -228,7 +228,7 @@ def estimate_similarity(
 ) -> SimilarityResult | None:
     """Similarity ``b_from_a`` of two local models from their common cameras (paper 3.2.1,
     Eq. 1-6; RANSAC and refit as in the module docstring) and its MSD edge weight (3.2.2,
-    Eq. 9-10, normalised by the extents as in DESIGN.md step 7).
+    Eq. 9-10, normalised by the extents).
 
     rotations_* (N,3,3), translations_* (N,3): cam_from_world poses of the N common cameras in
     models a and b, row k the same image. points_* (P,3): the common 3D points, row i the same

@@ -1,8 +1,9 @@
 """Normalized-cut partition of the image graph into cluster cores (paper Sec. 3.1, Alg. 1, lines 1-2).
 
 The paper cuts the image graph once with NCut (Shi & Malik) into ``K = floor(n / S_max)``
-clusters. That ``K`` makes the average cluster larger than its bound ``S_max``, so (DESIGN.md,
-step 5) we take ``K = ceil(n / S_max)`` per connected component and then:
+clusters (Alg. 1, line 1). That ``K`` makes the average cluster larger than its bound ``S_max``,
+so we take ``K = ceil(n / S_max)`` per connected component (a departure from the paper) and
+then:
 
 1. K-way spectral clustering of the component (normalized Laplacian embedding, sparse ARPACK
    eigensolver with a seeded start vector, ``cluster_qr`` label assignment: deterministic);
@@ -53,8 +54,8 @@ def partition_graph(
     """Partition the image graph into cores of at most ``max_cluster_size`` images.
 
     Implements Alg. 1, lines 1-2 (GraphPartition by NCut) with ``K = ceil(n / S_max)`` per
-    connected component and recursive normalized 2-way cuts of parts above ``S_max``
-    (DESIGN.md, step 5); see the module docstring for the four steps.
+    connected component and recursive normalized 2-way cuts of parts above ``S_max``; see the
+    module docstring for the four steps and why ``K`` departs from the paper's floor.
 
     Args:
         graph: the weighted image graph.
@@ -209,7 +210,7 @@ def _bisect_recursive(
 def ncut_bisect(sub: sp.spmatrix, s_max: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Best normalized 2-way cut of a connected graph along its sorted Fiedler vector.
 
-    The Shi & Malik sweep used for parts still above ``S_max`` (DESIGN.md, step 5).
+    The Shi & Malik sweep used for parts still above ``S_max`` (step 3 of the module docstring).
 
     Splits ``n`` nodes into ``i`` and ``n - i`` with both sides non-empty and
     ``ceil(i / S) + ceil((n - i) / S) == ceil(n / S)``, so recursion keeps ``K`` minimal;

@@ -1,7 +1,7 @@
 """Robust Sim3 alignment of estimated camera centres onto ground-truth ones.
 
 A reconstruction is only defined up to a similarity, so absolute pose errors are measured after
-a ``gt_from_est`` :class:`~backend.geometry.Sim3` with ``gt_centers ≈ sim.apply(est_centers)``,
+a ``gt_from_est`` :class:`~backend.sim3.Sim3` with ``gt_centers ≈ sim.apply(est_centers)``,
 estimated on camera centres by RANSAC over 3-point Umeyama fits with MSAC scoring and local
 refinement (:func:`align_centers`), so a minority of badly placed cameras does not bias it.
 

@@ -2,9 +2,10 @@
 
 Poses are ``cam_from_world`` (centre ``C = -R.T @ t``) and images are matched to ground truth by
 name, as in :mod:`sfm.evaluation.ground_truth` (which reads GT tables and models); an image counts as
-registered when it is in the reconstruction and ``Image.registered`` (DESIGN.md).
+registered when it is in the reconstruction and ``Image.registered``.
 
-Metrics (the "Pose accuracy" rule of DESIGN.md):
+Metrics (the project's one rule for pose accuracy, used by ``graphsfm evaluate``, the tests and
+the benchmarks alike):
 
 * Registration: registered GT images / GT images.
 * Absolute errors, after the robust Sim3 ``gt_from_est`` (:func:`sfm.evaluation.alignment.align_centers`

@@ -1,4 +1,4 @@
-"""Nearest-neighbour matching of two images' SIFT descriptors (DESIGN.md, algorithm step 3).
+"""Nearest-neighbour matching of two images' SIFT descriptors (the ratio test and mutual check).
 
 Descriptor matching: nearest neighbour on unit-normalised float32 descriptors, Lowe's ratio test
 on Euclidean distances (``d1 < max_ratio * d2``) and a mutual check (the match must also be the

@@ -1,4 +1,4 @@
-"""Which image pairs to match (DESIGN.md, algorithm step 2): exhaustive, retrieval, sequential.
+"""Which image pairs to match: exhaustive, retrieval, sequential.
 
 - ``exhaustive``: every pair, n (n - 1) / 2 of them.
 - ``retrieval``: one global descriptor per image, VLAD (Jegou et al. 2010; intra-normalised as in

@@ -1,4 +1,4 @@
-"""Two-view geometric verification (DESIGN.md, algorithm step 4), COLMAP's rules with OpenCV USAC.
+"""Two-view geometric verification (paper section 3.1.1: the image edges), COLMAP's rules with OpenCV USAC.
 
 For the raw matches of a pair:
 

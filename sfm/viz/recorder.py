@@ -1,4 +1,4 @@
-"""Rerun logging: every stage of a run is visible in one recording (DESIGN.md, "Rerun").
+"""Rerun logging: every stage of a run is visible in one recording.
 
 A :class:`Recorder` wraps one ``rerun.RecordingStream`` that is saved to a file in the
 workspace and never needs a viewer or a network (``spawn=True`` also opens a viewer when one is
@@ -7,8 +7,9 @@ writes ``WORK/recording-<stage>.rrd``.  All files of a workspace share one recor
 from the workspace path), so ``rerun WORK/*.rrd`` shows them as one recording.
 
 The ``stage`` sequence timeline has a fixed value per stage (:data:`STAGES`), so data logged by
-separate commands lines up.  Entity paths follow DESIGN.md: ``images/<name>``,
-``graph/images``, ``graph/clusters``, ``clusters/C<k>/...``, ``merge/...``, ``world/...``.
+separate commands lines up.  Entity paths (the ``sfm.viz`` package docstring lists them):
+``images/<name>``, ``graph/images``, ``graph/clusters``, ``clusters/C<k>/...``, ``merge/...``,
+``world/...``.
 A disabled recorder (``Recorder.disabled()``) accepts every call and does nothing.
 """
 
