@@ -234,7 +234,8 @@ def verify_pair(
     keypoints1: np.ndarray, keypoints2: np.ndarray, matches: np.ndarray, camera1: CameraLike,
     camera2: CameraLike, options: VerifyOptions = VerifyOptions(), seed: int = 0,
 ) -> TwoViewGeometry:  # fmt: skip
-    """The two-view geometry of one pair from its raw matches (see the module docstring).
+    """The two-view geometry of one pair from its raw matches (see the module docstring); its
+    inliers are the pair's image edge and their number its weight (paper section 3.1.1).
 
     Keypoints (N, >=2) in OpenCV's pixel convention; ``matches`` (M, 2) indices into them.
     F and H of the result are in OpenCV's pixel convention too, E on normalised coordinates,

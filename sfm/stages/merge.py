@@ -78,7 +78,8 @@ class MergeResult:
 def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOptions,
               recorder: Recorder | None = None) -> MergeResult:
     """Merge ``WORK/clusters/C<k>/<m>`` into ``WORK/sparse/N`` (one model per merge component,
-    largest first) and write ``WORK/merge.json``."""
+    largest first) and write ``WORK/merge.json`` (paper section 3.2, Alg. 2, then Figure 1's
+    re-triangulation and final bundle adjustment)."""
     recorder = recorder or Recorder.disabled()
     workspace = Path(workspace)
     t0 = time.perf_counter()
