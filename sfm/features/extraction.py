@@ -38,10 +38,9 @@ Conventions:
   COLMAP does: ``uint8(min(round(512 * d), 255))``. Dividing the stored bytes by 512 gives the
   unit vector back (up to rounding and the rare clipping). With ``root_sift=False`` the vector
   is L2-normalised instead, then quantised the same way.
-- Images, EXIF and grey levels: ``sfm.io.image_files``; cameras and ``--intrinsics``: ``sfm.features.cameras``.
-- Bad files (empty, truncated, not an image) are skipped with one warning line each and listed
-  in the result; the run goes on. Exact duplicate files are both kept, as COLMAP keeps them,
-  with a warning (they make a zero-baseline pair that verification sees as degenerate).
+- Images, EXIF and grey levels: ``sfm.io.image_files``; cameras and ``--intrinsics``:
+  ``sfm.features.cameras``; bad files and duplicates: the ``extract`` stage
+  (``sfm.stages.extract``), which decodes the images and calls :func:`extract_features`.
 """
 
 from __future__ import annotations
