@@ -1,4 +1,4 @@
-"""Subgraph expansion guided by a maximum spanning tree (paper Sec. 3.1.2, Alg. 1, lines 3-14).
+"""Subgraph expansion guided by a maximum spanning tree (paper section 3.1.2, Alg. 1, lines 3-12).
 
 After the NCut partition, the image edges between two cluster cores are "lost". The expansion
 gives neighbouring clusters common images so that their local reconstructions can be aligned:
@@ -8,10 +8,10 @@ gives neighbouring clusters common images so that their local reconstructions ca
 * its Kruskal maximum spanning tree (Alg. 1, line 5) is walked edge by edge: along MaxST edge
   ``(k1, k2)`` the strongest lost image edges (descending weight, at most ``O_max``) are added
   to BOTH clusters, cluster ``k1`` gaining the ``k2`` end of each edge and ``k2`` the ``k1`` end
-  (Alg. 1, lines 6-10), so every MaxST edge becomes an overlap the merge can use;
+  (Alg. 1, lines 6-9), so every MaxST edge becomes an overlap the merge can use;
 * then, while a cluster's completeness ``eta(i) = sum_{j != i} |C_i ∩ C_j| / |C_i|`` is below
   ``C``, one of its not-yet-used non-tree cluster edges is picked at random (seeded numpy
-  Generator) and its lost edges are added the same way (Alg. 1, lines 11-14), until every
+  Generator) and its lost edges are added the same way (Alg. 1, lines 10-12), until every
   cluster satisfies ``C`` or the clusters below ``C`` have no unused cluster edge left.
 """
 
@@ -49,7 +49,7 @@ class ClusterStats:
 
 @dataclass(frozen=True, eq=False)
 class ExpansionResult:
-    """Result of :func:`expand_clusters` (Alg. 1 output ``G_inter``).
+    """Result of :func:`expand_clusters` (Alg. 1's output ``G_inter``).
 
     Attributes:
         clusters: members of each cluster after expansion (sorted int64 arrays); index ``k``
@@ -82,7 +82,7 @@ class ExpansionResult:
 def lost_edges_by_pair(
     graph: ImageGraph, labels: np.ndarray
 ) -> dict[ClusterPair, tuple[np.ndarray, np.ndarray]]:
-    """Collect the lost image edges of every cluster pair (Alg. 1, line 3).
+    """Collect the lost image edges of every cluster pair (paper section 3.1.2, Alg. 1, line 3).
 
     Args:
         graph: the image graph.
@@ -121,7 +121,7 @@ def expand_clusters(
     max_overlap: int = 50,
     seed: int = 0,
 ) -> ExpansionResult:
-    """Expand NCut cores into overlapping clusters (Alg. 1, lines 3-14).
+    """Expand NCut cores into overlapping clusters (paper section 3.1.2, Alg. 1, lines 3-12).
 
     Args:
         graph: the image graph the cores were cut from.
@@ -131,7 +131,7 @@ def expand_clusters(
             ``eta(i) = sum_{j != i} |C_i ∩ C_j| / |C_i|`` and ``|C_i|`` is the CURRENT size of
             cluster ``i`` (after the additions so far), recomputed after every addition.
         max_overlap: ``O_max >= 1``, the most lost image edges added along one cluster pair.
-        seed: seeds the random choice of non-tree cluster edges (Alg. 1, line 12).
+        seed: seeds the random choice of non-tree cluster edges (Alg. 1, line 11).
 
     Returns:
         An :class:`ExpansionResult`. A single cluster is returned unchanged with completeness 0.
@@ -163,7 +163,7 @@ def expand_clusters(
     overlap_edges: dict[ClusterPair, np.ndarray] = {}
 
     def add_pair(pair: ClusterPair) -> None:
-        """Alg. 1, lines 8 / 13: add the pair's strongest lost edges to both clusters."""
+        """Alg. 1, lines 8 and 12: add the pair's strongest lost edges to both clusters."""
         ends = lost[pair][0][:max_overlap]
         overlap_edges[pair] = ends
         k1, k2 = pair
@@ -179,11 +179,11 @@ def expand_clusters(
         m = members[k]
         return float((multiplicity[list(m)] - 1).sum()) / len(m)
 
-    # Alg. 1, lines 6-10: every MaxST edge becomes an overlap.
+    # Alg. 1, lines 6-9: every MaxST edge becomes an overlap.
     for k1, k2, _ in maxst:
         add_pair((k1, k2))
 
-    # Alg. 1, lines 11-14: random non-tree cluster edges until the completeness holds.
+    # Alg. 1, lines 10-12: random non-tree cluster edges until the completeness holds.
     rng = np.random.default_rng(seed)
     used = {(k1, k2) for k1, k2, _ in maxst}
     unused_of: list[list[ClusterPair]] = [[] for _ in range(num_clusters)]

@@ -1,14 +1,17 @@
-"""Merge plan of the local reconstructions: MinST + minimum-height-tree anchor (paper Sec. 3.2, Alg. 2).
+"""Merge plan of the local models: MinST + minimum-height-tree anchor (paper section 3.2, Alg. 2).
 
-Given the cluster graph (one node per cluster; an edge where two local models could be aligned,
-weighted by their residual error MSD, Eq. 10-11), the plan is:
+Given the cluster graph (Alg. 2, line 1: one node per cluster; an edge where two local models
+could be aligned, weighted by their residual error, the MSD of Eq. 11, the larger of the two
+directions' MSE of Eq. 10; section 3.2.2), the plan is:
 
 1. the Kruskal minimum spanning tree (Alg. 2, line 2) selects the ``N - 1`` most accurate
-   similarity transformations (Eq. 7-9: minimising the sum of ``-log p_ij``);
-2. the anchor (reference frame) is the root of a minimum height tree, found by peeling the
-   leaves layer by layer, each leaf merging into its only neighbour (Alg. 2, lines 4-7); when
-   one node remains it is the anchor; when two remain, the larger cluster is the anchor (ties:
-   the smaller id) and the other merges into it in the last layer (Alg. 2, lines 8-11);
+   similarity transformations (section 3.2.2, Eq. 7-9: minimising the sum of ``-log p_ij``
+   maximises the probability that every tree edge aligns);
+2. the anchor (reference frame) is the root of a minimum height tree (section 3.2.3), found by
+   peeling the leaves layer by layer, each leaf merging into its only neighbour (Alg. 2, lines
+   4-7); when one node remains it is the anchor; when two remain, the larger cluster is the
+   anchor (ties: the smaller id) and the other merges into it in the last layer (Alg. 2, lines
+   8-11);
 3. every cluster is transformed along its tree path to the anchor.
 
 The anchor is a centre of the tree, so it minimises the longest path any cluster's
@@ -64,7 +67,11 @@ class MergePlan:
 def minimum_spanning_edges(
     cluster_ids: Sequence[int], weights: Mapping[tuple[int, int], float]
 ) -> list[tuple[int, int, float]]:
-    """Kruskal minimum spanning forest of the cluster graph (Alg. 2, line 2).
+    """Kruskal minimum spanning forest of the cluster graph (paper section 3.2.3, Alg. 2, line 2).
+
+    Minimising the sum of the weights ``w_ij = -log p_ij`` (Eq. 9) maximises the probability
+    ``P`` that every tree edge aligns (Eq. 7-8); the MSD (Eq. 11) stands in for ``-log p_ij``,
+    since only the order of the weights decides the tree (section 3.2.2).
 
     Edges with infinite weight (or absent) cannot align and are not used. Both orientations
     of a pair may be given; the smaller weight counts. Ties go to the lexicographically
@@ -106,7 +113,8 @@ def plan_merges(
     sizes: Mapping[int, int],
     weights: Mapping[tuple[int, int], float],
 ) -> list[MergePlan]:
-    """Plan the merges of local reconstructions: MinST, then MHT anchor (Alg. 2).
+    """Plan the merges of local reconstructions: MinST, then MHT anchor (paper section 3.2.3,
+    Alg. 2, lines 2-12).
 
     Args:
         cluster_ids: the clusters (distinct integer ids).
@@ -149,7 +157,7 @@ def plan_merges(
 def _plan_tree(
     nodes: list[int], edges: tuple[tuple[int, int, float], ...], sizes: Mapping[int, int]
 ) -> MergePlan:
-    """Minimum height tree anchor of one tree by peeling leaves (Alg. 2, lines 3-14)."""
+    """Minimum height tree anchor of one tree by peeling leaves (Alg. 2, lines 3-12)."""
     neighbours: dict[int, set[int]] = {v: set() for v in nodes}
     for a, b, _ in edges:
         neighbours[a].add(b)

@@ -1,4 +1,4 @@
-"""Errors a user sees as one line, each with the exit code DESIGN.md fixes.
+"""Errors a user sees as one line, each with its exit code (the command line's contract).
 
 0: a model was written; 1: unexpected internal error (details in WORK/log.txt);
 2: bad arguments or no usable input; 3: input was read but no model could be made.

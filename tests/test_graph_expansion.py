@@ -1,4 +1,4 @@
-"""Tests of graph.expansion: MaxST-guided subgraph expansion (Alg. 1, lines 3-14)."""
+"""Tests of graph.expansion: MaxST-guided subgraph expansion (Alg. 1, lines 3-12)."""
 
 from __future__ import annotations
 

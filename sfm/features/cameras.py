@@ -1,6 +1,6 @@
 """Which camera each image gets: the ``--intrinsics`` file, EXIF priors and camera grouping.
 
-The intrinsics file (DESIGN.md) has lines ``IMAGE_NAME WIDTH HEIGHT FX FY CX CY [more columns
+The intrinsics file (``--intrinsics``) has lines ``IMAGE_NAME WIDTH HEIGHT FX FY CX CY [more columns
 ignored]``; ``#`` lines and blank lines are skipped; the name ``*`` applies a line to every image
 no other line names; the principal point uses OpenCV's pixel convention (pixel centres at
 integers), like every pixel in graphsfm. The ground-truth tables ``gt/cameras_gt_opencv.txt``

@@ -9,8 +9,8 @@ Conventions:
   edgeThreshold 10 COLMAP's too; both are options. ``enable_precise_upscale=True``: OpenCV's
   default doubling of the image for the first octave maps upsampled pixel i to i / 2 instead
   of i / 2 - 0.25, which biases every keypoint by +0.25 px in x and y; the precise upscale has
-  no such bias, so keypoints are in OpenCV's pixel-centre convention (a test rotates an image
-  by 90 degrees and finds 90% of the keypoints within 0.3 px of where they must be).
+  no such bias, so keypoints are in OpenCV's pixel-centre convention (``tests/test_features.py``
+  checks it on an image rotated by 90 degrees, where every keypoint's place is known).
 - Images whose longer side exceeds ``max_image_size`` are shrunk with ``cv2.INTER_AREA`` before
   SIFT (SIFT never sees the full image); keypoints are mapped back to full-resolution pixels with
   OpenCV's pixel-centre convention ``x = (x_small + 0.5) * sx - 0.5`` (likewise y) and their
@@ -18,14 +18,13 @@ Conventions:
 - At most ``max_num_features`` keypoint *locations* per image, each with at most
   ``MAX_ORIENTATIONS`` (2) orientations: COLMAP's meaning of the option (it caps the
   detections, then gives each up to ``max_num_orientations = 2`` descriptors), so a busy image
-  holds about 1.2 x ``max_num_features`` keypoints (OpenCV's own ``nfeatures`` counts each
-  orientation as a keypoint: 8,192 keypoints were only ~6,700 locations, and the oblique views
-  of sceaux_castle found too few matches to register).  Which locations: by default the
-  largest-scale ones, COLMAP's documented rule ("maximum number of features to detect, keeping
-  larger-scale features"); coarse blobs recur across viewpoint and resolution changes where
-  the finest ones are texture and noise (lund_door, 12 images of 8,192 locations each: AUC@1
-  0.959 -> 0.975); ``keep_features="strongest"`` keeps the highest SIFT response instead
-  (OpenCV's rule).  SIFT detects every keypoint; the kept ones get the descriptors
+  holds somewhat more than ``max_num_features`` keypoints (Lowe 2004: about 15% of locations
+  get a second orientation).  OpenCV's own ``nfeatures`` counts each orientation as a keypoint,
+  so the same number would keep fewer locations than COLMAP does, and fewer matches on hard
+  (oblique) pairs.  Which locations: by default the largest-scale ones, COLMAP's documented
+  rule ("maximum number of features to detect, keeping larger-scale features"); coarse blobs
+  recur across viewpoint and resolution changes where the finest ones are texture and noise;
+  ``keep_features="strongest"`` keeps the highest SIFT response instead (OpenCV's rule).  SIFT detects every keypoint; the kept ones get the descriptors
   ``detectAndCompute`` gives them (computed for the kept ones alone on large images, from the
   same doubled-image pyramid: :data:`DESCRIBE_ALL_PIXELS`).  Stored in the order kept.
 - Keypoints are float32 rows ``(x, y, scale, orientation)``: the 4-column layout COLMAP reads.
@@ -39,10 +38,9 @@ Conventions:
   COLMAP does: ``uint8(min(round(512 * d), 255))``. Dividing the stored bytes by 512 gives the
   unit vector back (up to rounding and the rare clipping). With ``root_sift=False`` the vector
   is L2-normalised instead, then quantised the same way.
-- Images, EXIF and grey levels: ``sfm.io.image_files``; cameras and ``--intrinsics``: ``sfm.features.cameras``.
-- Bad files (empty, truncated, not an image) are skipped with one warning line each and listed
-  in the result; the run goes on. Exact duplicate files are both kept, as COLMAP keeps them,
-  with a warning (they make a zero-baseline pair that verification sees as degenerate).
+- Images, EXIF and grey levels: ``sfm.io.image_files``; cameras and ``--intrinsics``:
+  ``sfm.features.cameras``; bad files and duplicates: the ``extract`` stage
+  (``sfm.stages.extract``), which decodes the images and calls :func:`extract_features`.
 """
 
 from __future__ import annotations

@@ -82,10 +82,10 @@ def localization_sigma(scales: np.ndarray) -> np.ndarray:
 
 # Up to this many pixels SIFT describes every detection and the selection takes its rows;
 # above, it detects, selects, then describes the kept keypoints (a second Gaussian pyramid).
-# Same output either way, only the cost differs: a 640 x 480 image holds fewer locations than
-# max_num_features and a second pyramid would add a third (0.128 -> 0.171 s per image), where
-# a 2.5-megapixel photo (lund_door) detects ~4x the locations kept: describing them all adds
-# 40% (1.57 -> 2.21 s), the second pyramid 7%.
+# Same output either way, only the cost differs: a small image holds fewer locations than
+# max_num_features, so describing them all is cheaper than building a second pyramid, while a
+# photo of several megapixels detects many times the locations kept, and describing only the
+# kept ones saves more than the second pyramid costs.
 DESCRIBE_ALL_PIXELS = 1_000_000
 
 

@@ -4,8 +4,8 @@ Conventions at this boundary, and nowhere else:
 
 * Pixels: graphsfm keypoints and principal points use OpenCV's convention (pixel centres at
   integers); COLMAP files put the image corner at (0, 0).  Writing adds 0.5 to keypoint x, y and
-  to cx, cy (:func:`backend.camera_models.params_to_colmap`); reading subtracts 0.5
-  (:func:`~backend.camera_models.params_from_colmap`).
+  to cx, cy (:func:`sfm.io.pixel_convention.params_to_colmap`); reading subtracts 0.5
+  (:func:`~sfm.io.pixel_convention.params_from_colmap`).
 * Poses: an image's qvec (w, x, y, z) + tvec is ``cam_from_world`` (``x_cam = R X + t``), i.e.
   ``Image.cam_from_world_rotation`` / ``cam_from_world_translation``.
 * Only registered images are written; observations in other images are left out of the tracks

@@ -17,7 +17,7 @@ Conventions (COLMAP's, so files are interchangeable):
 - PIXELS: graphsfm keypoints use OpenCV's convention (pixel centres at integers); the database
   holds COLMAP's (image corner at (0, 0)). :meth:`Database.write_keypoints` adds 0.5 to x and y,
   :meth:`Database.read_keypoints` subtracts it; camera principal points likewise
-  (``backend.camera_models.params_to_colmap``): no other code needs to know.
+  (``sfm.io.pixel_convention.params_to_colmap``): no other code needs to know.
 - ``two_view_geometries.config`` holds :class:`~sfm.io.database_schema.TwoViewConfig` codes; a verified pair has
   config >= 2 (CALIBRATED) and enough inliers.
 

@@ -296,8 +296,10 @@ def available_memory() -> int | None:
 
 def workers_for_memory(max_image_size: int) -> int:
     """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
-    Gaussian and DoG pyramids of the 2x-upsampled image, about 230 bytes per input pixel
-    (1.7 GB for a 3200 x 2400 image), plus the decoded full-size image."""
+    Gaussian and DoG pyramids of the 2x-upsampled image, 6 + 5 float32 images per octave at 4
+    times the input's pixels, and a third more over the smaller octaves: about 230 bytes per
+    input pixel of an image shrunk to ``max_image_size`` (taken as 4:3), plus the decoded
+    full-size image."""
     cores = (
         len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     )

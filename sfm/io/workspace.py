@@ -1,4 +1,4 @@
-"""The workspace a run leaves (DESIGN.md, "The workspace a run leaves"): paths and atomic writes.
+"""The workspace a run leaves (its files: the ``sfm.io`` package docstring): names and atomic writes.
 
 Every file a stage writes goes to a temporary name in the same folder and is renamed into
 place, so an interrupted run never leaves a half-written file behind.

@@ -2,7 +2,7 @@
 moves, and when it stops.
 
 :class:`BundleAdjuster` belongs to one :class:`sfm.mapper.state.MapperState`.  It chooses what a
-BA optimises, builds the :class:`backend.bundle_adjustment.BAProblem` from the state's arrays,
+BA optimises, builds the :class:`backend.ba_problem.BAProblem` from the state's arrays,
 runs it (``backend``: a GTSAM factor graph) and hands the result back to the state
 (:meth:`MapperState.apply_adjustment`), which then filters its observations.
 

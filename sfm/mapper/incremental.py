@@ -45,7 +45,8 @@ EARLY_GLOBAL_BA_IMAGES = 10
 
 
 def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder: Recorder | None = None) -> list[Reconstruction]:
-    """All models incremental SfM makes of ``payload``'s images, largest first."""
+    """All models incremental SfM makes of ``payload``'s images, largest first (the local SfM of
+    one cluster, paper section 3.2)."""
     recorder = recorder or Recorder.disabled()
     state = MapperState(payload, opts)
     adjuster = BundleAdjuster(state)

@@ -1,4 +1,4 @@
-"""Which image pairs to match (DESIGN.md, algorithm step 2): exhaustive, retrieval, sequential.
+"""Which image pairs to match: exhaustive, retrieval, sequential.
 
 - ``exhaustive``: every pair, n (n - 1) / 2 of them.
 - ``retrieval``: one global descriptor per image, VLAD (Jegou et al. 2010; intra-normalised as in
@@ -67,8 +67,9 @@ def learn_vocabulary(
 ) -> np.ndarray:
     """(K, D) float32 visual words: seeded MiniBatchKMeans of unit-normalised descriptors.
 
-    Runs on one thread: OpenMP's busy waiting made it 20x slower on a loaded 2-core machine,
-    and the result does not depend on the machine."""
+    Runs on one thread: OpenMP's busy-waiting threads stall on a machine whose cores are
+    taken by other work (the other workers of a run), and the result does not depend on the
+    machine."""
     from sklearn.cluster import MiniBatchKMeans
     from threadpoolctl import threadpool_limits
 

@@ -1,11 +1,12 @@
-"""The cluster graph of the local models and its merge plan (paper section 3.2.1-3.2.3, Alg. 2 lines 1-2).
+"""The cluster graph of the local models and its merge plan (paper section 3.2, Alg. 2, lines 1-2).
 
 Every pair of local models that share at least ``min_common_cameras`` registered images gets a
-similarity from their common cameras (``backend.similarity``: median scale ratio, Eq. 1-2, then
-rotation and translation by RANSAC, Eq. 3-6) weighted by the normalised MSD over their common 3D
-points (points observed through the same (image, keypoint)), Eq. 9-10; edges above ``max_msd``
-are dropped (the paper's dotted edges, Figure 4).  The Kruskal MinST over what remains and the
-minimum-height-tree anchor of each connected part are ``graph.merge_plan``'s.
+similarity from their common cameras (section 3.2.1, ``backend.similarity``: median scale
+ratio, Eq. 1-2, then rotation and translation by RANSAC, Eq. 3-6) weighted by the normalised
+MSD over their common 3D points (points observed through the same (image, keypoint)), section
+3.2.2, Eq. 10-11; edges above ``max_msd`` are dropped (the paper's dotted edges, Figure 3).  The
+Kruskal MinST over what remains and the minimum-height-tree anchor of each connected part
+(section 3.2.3, Alg. 2, lines 2-12) are ``graph.merge_plan``'s.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LocalModel:
+    """One local model of the ``map`` stage: cluster ``k``'s model ``m`` (a node of the cluster graph)."""
+
     label: str  # "C<k>/<m>"
     model: Reconstruction
 
@@ -51,7 +54,8 @@ def common_data(a: Reconstruction, b: Reconstruction):
 
 
 def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: int = 0) -> dict:
-    """Similarity (``v_from_u``) and MSD of every pair of local models that can be aligned."""
+    """Similarity (``v_from_u``) and MSD of every pair of local models that can be aligned: the
+    cluster graph's edges (Alg. 2, line 1; section 3.2.1, Eq. 1-6, and section 3.2.2, Eq. 10-11)."""
     edges = {}
     sim_opts = SimilarityOptions(min_common_cameras=options.min_common_cameras, max_msd=options.max_msd, seed=seed)
     for u in range(len(models)):
@@ -72,6 +76,9 @@ def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: i
 
 
 def plan_components(models: list[LocalModel], edges: dict) -> list[MergePlan]:
+    """The merge plan of every connected part of the cluster graph's used edges: Kruskal MinST and
+    minimum-height-tree anchor (section 3.2.3, Alg. 2, lines 2-12; ``graph.merge_plan``), a
+    model's size being its number of images."""
     sizes = {k: len(m.model.images) for k, m in enumerate(models)}
     weights = {(u, v): e["msd"] for (u, v), e in edges.items() if e["used"]}
     return plan_merges(list(range(len(models))), sizes, weights)

@@ -13,7 +13,7 @@ class MergeOptions(Options):
     """Options of the ``merge`` stage (``graphsfm merge``)."""
 
     max_msd: float = option(
-        SimilarityOptions.max_msd, "Cluster-graph edges whose MSD (Eq. 10, normalised by the common cameras' "
+        SimilarityOptions.max_msd, "Cluster-graph edges whose MSD (Eq. 11, normalised by the common cameras' "
         "extent) exceeds this are not used: the paper's dotted edges.", above=0)
     min_common_cameras: int = option(
         2, "Registered images two local models must share to be aligned (two fix a scale).", min=2)

@@ -1,4 +1,4 @@
-"""Global refinement of the merged model (paper Figure 1, after merging; section 3).
+"""Global refinement of the merged model (paper section 3 and Figure 1: after merging).
 
 All tracks of a merge component are triangulated with the merged poses, then one global BA and
 filtering, re-triangulation, and a second BA only when re-triangulation added enough ("in

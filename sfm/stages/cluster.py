@@ -45,7 +45,8 @@ class ClusterResult:
 
 
 def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | None = None) -> ClusterResult:
-    """Cluster the image graph of ``workspace/database.db`` into ``workspace/clusters.json``."""
+    """Cluster the image graph of ``workspace/database.db`` into ``workspace/clusters.json``
+    (paper section 3.1, Alg. 1)."""
     recorder = recorder or Recorder.disabled()
     t0 = time.perf_counter()
     db_path = Path(workspace) / DATABASE

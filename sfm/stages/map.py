@@ -57,7 +57,8 @@ class MapResult:
 
 
 def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None = None, executor=None) -> MapResult:
-    """Incremental SfM of every cluster (or of all images) in ``workspace``.
+    """Incremental SfM of every cluster (or of all images) in ``workspace``, clusters in parallel
+    (paper section 3.2).
 
     Clusters that an earlier run with the same options and input finished (``WORK/stages.json``)
     are reused, not recomputed, so a run killed during ``map`` loses only the clusters in flight."""

@@ -92,7 +92,8 @@ def _usable_images(db: Database, ordered_ids: list[int], names: dict[int, str]) 
 
 
 def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None) -> MatchResult:
-    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring).
+    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring):
+    the image graph's edges and weights (paper section 3.1.1).
 
     ``executor``: where the pairs are matched (``sfm.execution``; default: a local pool of one
     process per core); only this process writes the database."""

@@ -78,7 +78,8 @@ class MergeResult:
 def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOptions,
               recorder: Recorder | None = None) -> MergeResult:
     """Merge ``WORK/clusters/C<k>/<m>`` into ``WORK/sparse/N`` (one model per merge component,
-    largest first) and write ``WORK/merge.json``."""
+    largest first) and write ``WORK/merge.json`` (paper section 3.2, Alg. 2, then Figure 1's
+    re-triangulation and final bundle adjustment)."""
     recorder = recorder or Recorder.disabled()
     workspace = Path(workspace)
     t0 = time.perf_counter()
@@ -112,7 +113,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         components.append((plan, poses, params))
     t_merge = time.perf_counter() - t0
     num_local, num_edges = len(models), len(edges)
-    del models, edges  # their Python point objects: ~1.7 KB per local point, not needed any more
+    del models, edges  # their Python point objects (one per local point): not needed any more
     return_freed_memory()
 
     recorder.stage("refine")

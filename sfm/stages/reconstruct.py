@@ -58,7 +58,8 @@ class ReconstructOptions:
 
 def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOptions,
                     executor=None, recorder: Recorder | None = None) -> dict:
-    """Every stage in order on ``executor`` (default: local processes); returns the report."""
+    """Every stage in order on ``executor`` (default: local processes), the pipeline of the
+    paper's Figure 1; returns the report."""
     workspace = Path(workspace)
     recorder = recorder or Recorder.disabled()
     if images is not None:

@@ -1,4 +1,4 @@
-"""Rerun logging: every stage of a run is visible in one recording (DESIGN.md, "Rerun").
+"""Rerun logging: every stage of a run is visible in one recording.
 
 A :class:`Recorder` wraps one ``rerun.RecordingStream`` that is saved to a file in the
 workspace and never needs a viewer or a network (``spawn=True`` also opens a viewer when one is
@@ -7,8 +7,9 @@ writes ``WORK/recording-<stage>.rrd``.  All files of a workspace share one recor
 from the workspace path), so ``rerun WORK/*.rrd`` shows them as one recording.
 
 The ``stage`` sequence timeline has a fixed value per stage (:data:`STAGES`), so data logged by
-separate commands lines up.  Entity paths follow DESIGN.md: ``images/<name>``,
-``graph/images``, ``graph/clusters``, ``clusters/C<k>/...``, ``merge/...``, ``world/...``.
+separate commands lines up.  Entity paths (the ``sfm.viz`` package docstring lists them):
+``images/<name>``, ``graph/images``, ``graph/clusters``, ``clusters/C<k>/...``, ``merge/...``,
+``world/...``.
 A disabled recorder (``Recorder.disabled()``) accepts every call and does nothing.
 """
 
@@ -48,8 +49,8 @@ class Recorder:
         self._opening: threading.Thread | None = None
         if self.path is None:
             return
-        # Opening the stream imports the Rerun SDK (about 0.3 s): a thread does it while the
-        # caller goes on (extraction and matching log nothing); the first use waits for it.
+        # Opening the stream imports the Rerun SDK, which takes a while: a thread does it while
+        # the caller goes on (extraction and matching log nothing); the first use waits for it.
         self._opening = threading.Thread(target=self._open, args=(workspace, spawn), daemon=True)
         self._opening.start()
 
