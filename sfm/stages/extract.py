@@ -205,7 +205,7 @@ def run_extract(
             max_workers = workers_for_memory(options.max_image_size)
             try:
                 infos = _probe_all(jobs, executor, max_workers, bad)
-                specs = assign_cameras(infos, options.camera_mode, table)
+                specs = assign_cameras(infos, options.camera_mode, table, options.camera_model)
                 writer.check_reused(specs)
                 jobs = [j for j in jobs if j.name in infos]
                 extracted = _extract_all(jobs, infos, specs, writer, executor, max_workers, bad)

@@ -5,7 +5,9 @@ each image as soon as its worker returns it. Each image is written (camera if ne
 keypoints, descriptors) in one transaction, so an interrupted run loses only the images in
 flight, and a resumed run skips the images that already have keypoints in ``WORK/database.db``.
 ``WORK/extract.json`` (written atomically) maps each shared camera's group key to its camera id,
-so a resumed run puts new images on the cameras it made before; the options a run used are
+so a resumed run puts new images on the cameras it made before, and lists the cameras whose
+intrinsics the ``--intrinsics`` file gave (``given_intrinsics``: the mapper holds them fixed,
+:func:`given_camera_ids`); the options a run used are
 compared in the stage ledger, ``WORK/stages.json`` (:func:`extract_ledger`), which drops the
 database when they changed.  COLMAP's tables hold nothing extra.
 """
@@ -72,6 +74,8 @@ class ExtractWriter:
             str(k): v for k, v in (cameras.items() if isinstance(cameras, dict) else ())
             if isinstance(v, int) and v in self.cameras  # a kill may leave ids never committed
         }  # fmt: skip
+        given = data.get("given_intrinsics")
+        self.given = {v for v in (given if isinstance(given, list) else ()) if isinstance(v, int) and v in self.cameras}
 
     def _load(self) -> dict:
         if not self.sidecar.exists():
@@ -86,7 +90,7 @@ class ExtractWriter:
     def save(self) -> None:
         write_json_atomic(self.sidecar, {
             "version": 1, "image_dir": self.image_dir, "options": _options_json(self.options),
-            "cameras": self.camera_ids,
+            "cameras": self.camera_ids, "given_intrinsics": sorted(self.given),
         })  # fmt: skip
 
     def names_with_keypoints(self) -> set[str]:
@@ -113,6 +117,9 @@ class ExtractWriter:
         self.next_camera_id += 1
         if spec.shared:  # record before the commit: a kill in between leaves a dangling entry,
             self.camera_ids[spec.key] = camera_id  # which the next run drops, never a lost key
+        if spec.given:
+            self.given.add(camera_id)
+        if spec.shared or spec.given:
             self.save()
         self.db.add_camera(spec.model, spec.width, spec.height, spec.params,
                            spec.prior_focal_length, camera_id=camera_id)  # fmt: skip
@@ -128,3 +135,16 @@ class ExtractWriter:
             self.db.write_descriptors(image_id, descriptors)
         self.image_ids[name] = image_id
         self.image_cameras[name] = camera_id
+
+
+def given_camera_ids(workspace: Path) -> set[int] | None:
+    """Ids of the cameras whose intrinsics the ``--intrinsics`` file gave, from
+    ``WORK/extract.json``; None when the workspace has no such record (a database made
+    elsewhere, or by ``graphsfm synth``)."""
+    path = Path(workspace) / SIDECAR
+    try:
+        data = read_json(path) if path.exists() else None
+    except (OSError, ValueError):
+        return None
+    given = data.get("given_intrinsics") if isinstance(data, dict) else None
+    return {v for v in given if isinstance(v, int)} if isinstance(given, list) else None
