@@ -31,6 +31,9 @@ class ExtractOptions(Options):
     intrinsics: Path | None = option(
         None, "File of 'NAME WIDTH HEIGHT FX FY CX CY' lines ('*' for every image, OpenCV pixel centres): "
         "those images get PINHOLE cameras with these values, held fixed unless refine_given_intrinsics.")
+    masks: Path | None = option(
+        None, "Folder of masks in COLMAP's convention, MASKS/<image name>.png: no keypoint is kept where a mask is "
+        "zero; an image without a mask is used whole.")
     root_sift: bool = option(
         True, "RootSIFT descriptors (L1-normalised, square-rooted, as COLMAP); off: L2-normalised SIFT.")
     contrast_threshold: float = option(

@@ -21,6 +21,9 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
   ``max(W, H) / max(PixelXDimension, PixelYDimension)`` when the file was resized after the
   camera wrote those tags; else no prior. Priors outside ``[0.1, 50] * max(W, H)`` are treated
   as bogus EXIF and ignored.
+- Masks (:func:`read_mask`, COLMAP's convention): ``MASKS/<image name>.png``, a grey or colour
+  image of the upright image's size whose zero pixels are to be ignored (a mask of the stored,
+  unrotated size is turned upright with its image's EXIF orientation).
 - A file that cannot be used raises :class:`BadImageError` whose message is the reason (empty
   file, not an image, truncated, ...). Pillow's decompression-bomb limit is lifted while we read:
   a 100-megapixel photo is a normal input here.
@@ -266,6 +269,29 @@ def read_gray(data: bytes) -> tuple[np.ndarray, ImageInfo]:
     if gray.ndim != 2 or gray.shape != (info.height, info.width):
         raise BadImageError(f"unexpected decoded shape {gray.shape} for mode {im.mode}")
     return gray, info
+
+
+def mask_path(masks: Path, name: str) -> Path:
+    """Where COLMAP looks for the mask of image ``name``: ``masks/<name>.png``."""
+    return Path(masks) / f"{name}.png"
+
+
+def read_mask(data: bytes, info: ImageInfo) -> np.ndarray:
+    """The mask file's bytes as a boolean array of the upright image's shape (H, W): True
+    where features may be, False where the mask is zero (every channel, alpha ignored)."""
+    with _no_pixel_limit():
+        try:
+            with Image.open(BytesIO(data)) as im:
+                arr = np.asarray(im.convert("RGB") if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr") else im)
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError) as exc:
+            raise BadImageError(f"cannot read its mask: {exc}") from None
+    keep = arr.reshape(arr.shape[0], arr.shape[1], -1).any(axis=2)
+    if keep.shape == (info.width, info.height) and info.orientation in (5, 6, 7, 8) and info.width != info.height:
+        keep = np.asarray(Image.fromarray(keep).transpose(_UPRIGHT[info.orientation]))
+    if keep.shape != (info.height, info.width):
+        raise BadImageError(
+            f"its mask is {keep.shape[1]}x{keep.shape[0]} but the image is {info.width}x{info.height} (upright)")
+    return keep
 
 
 def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float, float]:

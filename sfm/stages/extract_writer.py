@@ -39,16 +39,25 @@ SIDECAR = "extract.json"
 def _options_json(options: ExtractOptions) -> dict[str, Any]:
     d = dataclasses.asdict(options)
     d["intrinsics"] = None if options.intrinsics is None else str(options.intrinsics)
+    d["masks"] = None if options.masks is None else str(options.masks)
     return d
+
+
+def _masks_record(masks: Path) -> str:
+    """A fingerprint of the mask folder: each mask's name, size and modification time."""
+    files = sorted(p for p in Path(masks).rglob("*.png") if p.is_file())
+    return fingerprint([(p.relative_to(masks).as_posix(), p.stat().st_size, p.stat().st_mtime_ns) for p in files])
 
 
 def extract_ledger(workspace: Path, options: ExtractOptions) -> Ledger:
     """The stage ledger, after dropping the database when the options that decide the features
     or the cameras changed since the images in it were extracted (the intrinsics file counts by
-    its content): every image is then extracted again, and every later stage runs again."""
+    its content, the mask folder by its files' names, sizes and times): every image is then extracted again, and every later stage runs again."""
     record = options_record(options)
     if options.intrinsics is not None and Path(options.intrinsics).is_file():
         record["intrinsics"] = fingerprint(Path(options.intrinsics).read_bytes())
+    if options.masks is not None and Path(options.masks).is_dir():
+        record["masks"] = _masks_record(Path(options.masks))
 
     def reset() -> None:
         for name in (DATABASE, DATABASE + "-wal", DATABASE + "-shm", SIDECAR):
