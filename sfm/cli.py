@@ -54,7 +54,7 @@ COMMAND_OPTIONS: dict[str, tuple[type, ...]] = {
 ONLY_FIELDS: dict[tuple[str, type], tuple[str, ...]] = {
     ("merge", MapperOptions): ("min_num_matches", "max_reproj_error", "min_tri_angle", "intrinsics_refinement",
                                "refine_given_intrinsics", "loss", "loss_scale", "scale_weights",
-                               "ba_max_observations", "min_model_size", "seed"),
+                               "ba_max_observations", "min_model_size", "georegister", "gps_max_error", "seed"),
 }
 
 

@@ -24,6 +24,9 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
 - Masks (:func:`read_mask`, COLMAP's convention): ``MASKS/<image name>.png``, a grey or colour
   image of the upright image's size whose zero pixels are to be ignored (a mask of the stored,
   unrotated size is turned upright with its image's EXIF orientation).
+- GPS (:func:`gps_from_exif`): the GPS IFD's latitude, longitude (degrees, minutes, seconds with
+  their N/S and E/W references) and altitude (metres, below sea level when GPSAltitudeRef is 1)
+  on WGS84; like COLMAP, all three must be there, else the image has no GPS.
 - A file that cannot be used raises :class:`BadImageError` whose message is the reason (empty
   file, not an image, truncated, ...). Pillow's decompression-bomb limit is lifted while we read:
   a 100-megapixel photo is a normal input here.
@@ -51,6 +54,8 @@ IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", 
 
 # EXIF tags (IFD0 and the Exif sub-IFD)
 _EXIF_IFD = 0x8769
+_GPS_IFD = 0x8825
+_GPS_LAT_REF, _GPS_LAT, _GPS_LON_REF, _GPS_LON, _GPS_ALT_REF, _GPS_ALT = 1, 2, 3, 4, 5, 6
 _ORIENTATION = 0x0112
 _MAKE, _MODEL = 0x010F, 0x0110
 _FOCAL_LENGTH = 0x920A
@@ -78,7 +83,8 @@ class ImageInfo:
     """What the camera of an image needs: upright size and EXIF facts.
 
     ``focal_px`` is the EXIF focal prior in pixels of the upright image (None: EXIF gives none);
-    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``.
+    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``; ``gps`` is
+    ``(latitude deg, longitude deg, altitude m)`` on WGS84 from EXIF, or None.
     """
 
     width: int
@@ -88,6 +94,7 @@ class ImageInfo:
     model: str = ""
     focal_px: float | None = None
     focal_source: str = "none"
+    gps: tuple[float, float, float] | None = None
 
 
 def find_images(image_dir: Path) -> list[str]:
@@ -157,6 +164,41 @@ def focal_prior_from_exif(tags: dict, width: int, height: int) -> tuple[float | 
     return None, "none"
 
 
+def _degrees(value: object) -> float | None:
+    """Degrees from an EXIF (degrees, minutes, seconds) triple of rationals, or None."""
+    if not isinstance(value, (tuple, list)) or not 1 <= len(value) <= 3:
+        return None
+    parts = [_number(v) for v in value]
+    if any(p is None for p in parts):
+        return None
+    return sum(p / 60.0**k for k, p in enumerate(parts))  # type: ignore[operator]
+
+
+def gps_from_exif(gps: dict) -> tuple[float, float, float] | None:
+    """``(latitude, longitude, altitude)`` from a GPS IFD (tag ids to values), or None when
+    one of them is missing or out of range (module docstring)."""
+    lat, lon, alt = _degrees(gps.get(_GPS_LAT)), _degrees(gps.get(_GPS_LON)), _number(gps.get(_GPS_ALT))
+    if lat is None or lon is None or alt is None or not (0 <= lat <= 90 and 0 <= lon <= 180):
+        return None
+    if _text(gps.get(_GPS_LAT_REF)).upper().startswith("S"):
+        lat = -lat
+    if _text(gps.get(_GPS_LON_REF)).upper().startswith("W"):
+        lon = -lon
+    ref = gps.get(_GPS_ALT_REF)
+    if (ref[0] if isinstance(ref, (bytes, tuple, list)) and len(ref) else _number(ref)) == 1:
+        alt = -alt
+    return float(lat), float(lon), float(alt)
+
+
+def _gps_tags(im: Image.Image) -> dict:
+    if im.format == "PNG" and "exif" not in im.info:
+        return {}
+    try:
+        return dict(im.getexif().get_ifd(_GPS_IFD))
+    except Exception:  # noqa: BLE001 - malformed EXIF is common and never fatal
+        return {}
+
+
 def _exif_tags(im: Image.Image) -> dict:
     """IFD0 and Exif sub-IFD tags merged (sub-IFD wins), read without decoding pixels."""
     if im.format == "PNG" and "exif" not in im.info:
@@ -181,7 +223,8 @@ def _info_from_pil(im: Image.Image) -> ImageInfo:
         width, height = height, width
     focal, source = focal_prior_from_exif(tags, width, height)
     return ImageInfo(
-        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source
+        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source,
+        gps_from_exif(_gps_tags(im)) if tags else None,
     )
 
 

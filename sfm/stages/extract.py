@@ -1,7 +1,8 @@
 """The ``extract`` stage: SIFT keypoints and RootSIFT descriptors of every image, into database.db.
 
 :func:`run_extract` finds the images (``sfm.io.image_files``), reads their headers and EXIF,
-gives each a camera (``sfm.features.cameras``), runs :func:`sfm.features.extraction.extract_features`
+gives each a camera (``sfm.features.cameras``) and, from its EXIF GPS, a position prior
+(the database's ``pose_priors``, WGS84), runs :func:`sfm.features.extraction.extract_features`
 on each in parallel (on an executor of ``sfm.execution``), and writes each image as soon as it
 returns (``sfm.stages.extract_writer``).
 
@@ -174,7 +175,7 @@ def _extract_all(
                 "zero-baseline pair", r.name, first_by_digest[r.digest],
             )  # fmt: skip
         first_by_digest.setdefault(r.digest, r.name)
-        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors)
+        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors, probed.gps)
         extracted += 1
     return extracted
 

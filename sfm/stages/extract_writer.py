@@ -134,12 +134,16 @@ class ExtractWriter:
                            spec.prior_focal_length, camera_id=camera_id)  # fmt: skip
         return camera_id
 
-    def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray):
+    def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray,
+              gps: tuple[float, float, float] | None = None):
+        """One image's camera, row, keypoints, descriptors and EXIF GPS (a WGS84 pose prior)."""
         with self.db.transaction():
             camera_id = self._camera_id(name, spec)
             image_id = self.image_ids.get(name)
             if image_id is None:
                 image_id = self.db.add_image(name, camera_id)
+            if gps is not None:
+                self.db.write_pose_prior(image_id, camera_id, gps)
             self.db.write_keypoints(image_id, keypoints)
             self.db.write_descriptors(image_id, descriptors)
         self.image_ids[name] = image_id
