@@ -10,7 +10,6 @@ largest model's under ``georegistration``.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -23,8 +22,6 @@ from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.mapper.options import MapperOptions
 
 log = logging.getLogger(__name__)
-
-GEOREGISTRATION = "georegistration.json"
 
 
 def gps_by_name(db_path: Path) -> dict[str, np.ndarray]:
@@ -51,20 +48,3 @@ def georegister_models(models: list[Reconstruction], db_path: Path, options: Map
             log.warning("model %d is not georegistered: %s", m, why)
         out.append(None if reg is None else reg.to_json())
     return out
-
-
-def write_georegistration(folder: Path, registration: dict | None) -> None:
-    """``folder/georegistration.json`` with the registration, or none at all."""
-    path = Path(folder) / GEOREGISTRATION
-    if registration is None:
-        path.unlink(missing_ok=True)
-        return
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(registration, indent=2) + "\n")
-    tmp.replace(path)
-
-
-def read_georegistration(folder: Path) -> dict | None:
-    """The registration a model folder holds, or None."""
-    path = Path(folder) / GEOREGISTRATION
-    return json.loads(path.read_text()) if path.is_file() else None

@@ -23,11 +23,11 @@ from sfm.errors import InputError, NoModelError
 from sfm.execution.local import LocalExecutor, TaskResult
 from sfm.io.colmap_model import read_model, write_model
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
-from sfm.io.workspace import CLUSTERS, DATABASE, read_json, update_report
+from sfm.io.workspace import CLUSTERS, DATABASE, read_georegistration, read_json, update_report, write_georegistration
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.payload import MapperInput
-from sfm.stages.georegister import georegister_models, read_georegistration, write_georegistration
+from sfm.stages.georegister import georegister_models
 from sfm.stages.payloads import ClusterPayloads
 from sfm.viz.recorder import Recorder, log_model
 
