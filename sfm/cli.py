@@ -254,136 +254,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_model(path: str):
-    """The model at ``path``; a missing or unreadable one is a bad argument (exit code 2)."""
-    from sfm.io.colmap_model import read_model
-
-    model = Path(path)
-    if not model.exists():
-        raise InputError(f"model not found: {model}")
-    try:
-        return read_model(model)
-    except (FileNotFoundError, ValueError) as exc:
-        raise InputError(str(exc)) from exc
-
-
-def _free_output(out: Path, overwrite: bool) -> None:
-    if out.exists() and not overwrite:
-        raise InputError(f"{out} exists; choose another output or pass --overwrite to replace it")
-
-
 def cmd_export(args: argparse.Namespace) -> int:
-    import shutil
+    from sfm.stages.model_tools import export
 
-    from sfm.io.colmap_model import write_model, write_ply
-    from sfm.io.nerfstudio import write_nerfstudio
-    from sfm.io.options import format_from_path
-    from sfm.io.undistort import export_undistorted
-    from sfm.io.workspace import read_georegistration, write_georegistration
-
-    options = options_of(ExportOptions, args)
-    out = Path(args.out)
-    to = options.to or format_from_path(out)
     images = _image_dir(args.images) if args.images is not None else None
-    if to == "undistorted" and images is None:
-        raise InputError("--to undistorted needs --images DIR, the folder of the model's images")
-    _free_output(out, options.overwrite)
-    recon = _read_model(args.model)
-    summary: dict = {"to": to, "out": str(out)}
-    if to == "ply":
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_ply(recon, out)
-        summary["points"] = len(recon.points3D)
-    elif to == "nerfstudio":
-        summary.update(write_nerfstudio(recon, out if out.suffix.lower() == ".json" else out / "transforms.json", images))
-    elif to == "undistorted":
-        for stale in (out / "images", out / "sparse"):
-            shutil.rmtree(stale, ignore_errors=True)
-        summary.update(export_undistorted(recon, images, out))
-    else:
-        write_model(recon, out, fmt=to)
-        write_georegistration(out, read_georegistration(Path(args.model)))
-        summary.update({"images": len(recon.registered_image_ids), "points": len(recon.points3D)})
-    _print(summary)
+    _print(export(args.model, args.out, images=images, options=options_of(ExportOptions, args)))
     return 0
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from sfm.evaluation.model_info import model_info
-    from sfm.io.workspace import read_georegistration
+    from sfm.stages.model_tools import info
 
-    recon = _read_model(args.model)
-    _print(model_info(recon, read_georegistration(Path(args.model))), digits=10)
+    _print(info(args.model), digits=10)
     return 0
 
 
-def _reference_table(path: Path) -> dict[str, list[float]]:
-    """``IMAGE_NAME X Y Z`` lines (COLMAP's model_aligner ref_images_path); ``#`` lines skipped."""
-    if not path.is_file():
-        raise InputError(f"reference table not found: {path}")
-    table = {}
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        tokens = line.split()
-        if not tokens or tokens[0].startswith("#"):
-            continue
-        try:
-            table[tokens[0]] = [float(v) for v in tokens[1:4]]
-        except ValueError:
-            raise InputError(f"{path}:{lineno}: expected 'IMAGE_NAME X Y Z'") from None
-        if len(table[tokens[0]]) != 3:
-            raise InputError(f"{path}:{lineno}: expected 'IMAGE_NAME X Y Z'")
-    return table
-
-
-def _gps_source(source: Path, names: list[str]) -> dict:
-    """Image name -> (lat, lon, alt): from a database's pose priors, or an image folder's EXIF."""
-    import numpy as np
-
-    from sfm.io.image_files import BadImageError, probe_image
-    from sfm.stages.georegister import gps_by_name
-
-    if source.is_file():
-        return gps_by_name(source)
-    if not source.is_dir():
-        raise InputError(f"GPS source not found: {source} (a database.db or the image folder)")
-    gps = {}
-    for name in names:
-        try:
-            info = probe_image(source / name) if (source / name).is_file() else None
-        except BadImageError:
-            info = None
-        if info is not None and info.gps is not None:
-            gps[name] = np.array(info.gps)
-    return gps
-
-
 def cmd_align(args: argparse.Namespace) -> int:
-    from sfm.evaluation.georegistration import georegister, model_centers_and_up, register_to_reference
-    from sfm.io.colmap_model import write_model
-    from sfm.io.workspace import write_georegistration
+    from sfm.stages.model_tools import align
 
-    options = options_of(AlignOptions, args)
-    out = Path(args.out)
-    _free_output(out, options.overwrite)
-    recon = _read_model(args.model)
-    names = sorted(recon.images[i].name for i in recon.registered_image_ids)
-    if args.gps is not None:
-        reg, why = georegister(recon, _gps_source(Path(args.gps), names), options.max_error, options.seed)
-    else:
-        table = _reference_table(Path(args.ref))
-        known = [n for n in names if n in table]
-        centers, up = model_centers_and_up(recon, known)
-        import numpy as np
-
-        reg, why = register_to_reference(centers, up, np.array([table[n] for n in known]).reshape(-1, 3),
-                                         options.max_error, options.seed)
-        if reg is not None:
-            recon.transform(reg.target_from_model)
-    if reg is None:
-        raise InputError(f"cannot align {args.model}: {why}")
-    write_model(recon, out)
-    write_georegistration(out, reg.to_json() if reg.origin is not None else None)
-    _print({"out": str(out), **reg.to_json()}, digits=10)
+    _print(align(args.model, args.out, gps=args.gps, ref=args.ref, options=options_of(AlignOptions, args)), digits=10)
     return 0
 
 

@@ -226,3 +226,17 @@ def test_align_to_a_reference_table(lens_model, tmp_path, capsys):
     assert not (tmp_path / "aligned" / "georegistration.json").exists()
     assert cli.main(["align", str(model), "--gps", str(tmp_path), str(tmp_path / "gps")]) == 2  # no GPS there
     assert "cannot align" in capsys.readouterr().err
+
+
+def test_python_api(lens_model, tmp_path):
+    import sfm
+    from sfm.errors import InputError
+
+    model, images, recon = lens_model
+    assert sfm.export(model, tmp_path / "m", to="txt")["images"] == 10
+    assert (tmp_path / "m" / "images.txt").is_file()
+    assert sfm.info(tmp_path / "m")["points"] == len(recon.points3D)
+    with pytest.raises(ValueError, match="unknown option 'too'"):
+        sfm.export(model, tmp_path / "x.ply", too="ply")
+    with pytest.raises(InputError, match="one of --gps SOURCE or --ref TABLE"):
+        sfm.align(model, tmp_path / "a")

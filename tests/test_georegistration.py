@@ -136,3 +136,26 @@ def test_no_georegistration_without_enough_gps(tmp_path):
     run_map(tmp_path, MapperOptions(), executor=LocalExecutor(1))
     assert not (tmp_path / "sparse" / "0" / "georegistration.json").exists()
     assert json.loads((tmp_path / "report.json").read_text())["georegistration"] is None
+
+
+@pytest.mark.slow
+def test_opensfm_lund_is_georegistered(shared_data, tmp_path):
+    """29 street photos with phone GPS (integer altitudes, DOP 5-10): the model lands in ENU metres,
+    its cameras upright, each inlier within the GPS noise of its fix."""
+    from sfm.api import reconstruct
+    from sfm.evaluation.georegistration import model_centers_and_up
+    from sfm.stages.georegister import gps_by_name
+
+    models, report = reconstruct(shared_data / "opensfm_lund" / "images", tmp_path, recording=False, pairs="spatial")
+    reg = report["georegistration"]
+    assert reg is not None and reg["num_gps_images"] == 29 and reg["num_inliers"] >= 25
+    assert reg["rms_error"] < 6.0 and reg["roll_from_upright_cameras"]  # a walk along one street
+    gps = gps_by_name(tmp_path / "database.db")
+    names = sorted(gps)
+    origin = np.array([reg["origin_lat"], reg["origin_lon"], reg["origin_alt"]])
+    enu = enu_from_wgs84(np.array([gps[n] for n in names]), origin)
+    centers, up = model_centers_and_up(models[0], names)
+    err = np.linalg.norm(centers - enu, axis=1)
+    assert np.median(err) < 5.0 and np.sum(err < 10.0) >= 25
+    tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1, 1)))
+    assert np.median(tilt) < 10.0  # people hold phones upright
