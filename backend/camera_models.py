@@ -145,7 +145,9 @@ def project(model: str, params: Array, points_cam: Array) -> Array:
 def unproject(model: str, params: Array, pixels: Array, iterations: int = 20) -> Array:
     """Normalised image coordinates (N, 2) of pixels (N, 2): removes the distortion by fixed-point
     iteration (converges for the mild distortion SfM cameras have; stops early once an
-    iteration changes nothing, which more iterations would not either)."""
+    iteration changes nothing, which more iterations would not either).  A pixel the iteration
+    cannot undistort (beyond where the distortion is invertible, as with intrinsics a young
+    model's BA has not settled) comes out NaN."""
     spec = model_spec(model)
     params = np.asarray(params, dtype=np.float64)
     px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
@@ -155,13 +157,16 @@ def unproject(model: str, params: Array, pixels: Array, iterations: int = 20) ->
     vd = (px[:, 1] - cy) / fy
     u, v = ud.copy(), vd.copy()
     if spec.extra_idx:
-        for _ in range(iterations):
-            du, dv = _distortion(spec, params, u, v)
-            u_next, v_next = ud - du, vd - dv
-            if np.array_equal(u_next, u) and np.array_equal(v_next, v):
-                break
-            u, v = u_next, v_next
-    return np.stack([u, v], axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):  # diverging rows end as inf/NaN: reported NaN
+            for _ in range(iterations):
+                du, dv = _distortion(spec, params, u, v)
+                u_next, v_next = ud - du, vd - dv
+                if np.array_equal(u_next, u) and np.array_equal(v_next, v):
+                    break
+                u, v = u_next, v_next
+    out = np.stack([u, v], axis=1)
+    out[~np.all(np.isfinite(out), axis=1)] = np.nan
+    return out
 
 
 def ds2_from_params(model: str, params: Array) -> Array:

@@ -43,8 +43,11 @@ Conventions, everywhere:
   image corner at (0, 0): keypoints and principal points are shifted by 0.5 when written and
   read (``sfm.io``), nowhere else.
 - Cameras are COLMAP camera models (``backend.camera_models``): ``SIMPLE_RADIAL`` with an
-  EXIF focal prior (else 1.2 x the longer side) by default, ``PINHOLE`` held fixed for
-  intrinsics the user gives.
+  EXIF focal prior (else 1.2 x the longer side) by default, or the ``camera_model`` asked for
+  (SIMPLE_PINHOLE, PINHOLE, RADIAL, OPENCV), ``PINHOLE`` held fixed for intrinsics the user gives.
+- GPS: EXIF positions are the database's WGS84 pose priors; a final model with three or more
+  is georegistered into a local east-north-up frame in metres (origin in
+  ``sparse/N/georegistration.json`` and ``report.json``).
 - Images are named by their path relative to the image folder; integer ids are the database's.
 - Randomness comes only from a ``seed`` option: the same input and seed give the same files,
   with any number of workers.
@@ -63,8 +66,9 @@ was read but no model could be made.
 from __future__ import annotations
 
 _API = ("reconstruct", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
+        "export", "info", "align",
         "ExtractOptions", "MatchOptions", "ClusterOptions", "MapperOptions", "MergeOptions", "ExecutionOptions",
-        "RecordingOptions", "Reconstruction", "read_model")
+        "RecordingOptions", "ExportOptions", "AlignOptions", "Reconstruction", "read_model")
 
 
 def __getattr__(name: str):

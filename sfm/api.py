@@ -1,4 +1,6 @@
-"""The Python API: ``sfm.reconstruct(images, workspace, **options)`` and one function per stage.
+"""The Python API: ``sfm.reconstruct(images, workspace, **options)``, one function per stage, and
+what to do with a model: ``sfm.export`` (COLMAP, PLY, undistorted images, nerfstudio),
+``sfm.info`` (a summary) and ``sfm.align`` (onto GPS or reference positions).
 
 Keyword options are the fields of the option dataclasses (``ExtractOptions``, ``MatchOptions``,
 ``ClusterOptions``, ``MapperOptions``, ``MergeOptions``, ``ExecutionOptions``,
@@ -13,9 +15,11 @@ from pathlib import Path
 
 from sfm.clustering.options import ClusterOptions
 from sfm.core.model import Reconstruction
+from sfm.evaluation.options import AlignOptions
+from sfm.io.colmap_model import read_model
+from sfm.io.options import ExportOptions
 from sfm.execution.options import ExecutionOptions
 from sfm.features.options import ExtractOptions
-from sfm.io.colmap_model import read_model
 from sfm.mapper.options import MapperOptions
 from sfm.matching.options import MatchOptions
 from sfm.merge.options import MergeOptions
@@ -24,6 +28,7 @@ from sfm.stages.extract import run_extract
 from sfm.stages.map import run_map
 from sfm.stages.match import run_match
 from sfm.stages.merge import run_merge
+from sfm.stages.model_tools import align, export, info
 from sfm.stages.reconstruct import ReconstructOptions
 from sfm.stages.reconstruct import reconstruct as _run
 from sfm.viz.options import RecordingOptions
@@ -47,6 +52,6 @@ def reconstruct(images: str | Path | None, workspace: str | Path, **options) -> 
     return [read_model(d) for d in folders], report
 
 
-__all__ = ["reconstruct", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
+__all__ = ["reconstruct", "make_options", "export", "info", "align", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
            "ExtractOptions", "MatchOptions", "ClusterOptions", "MapperOptions", "MergeOptions", "ExecutionOptions",
-           "RecordingOptions", "Reconstruction", "read_model"]
+           "RecordingOptions", "ExportOptions", "AlignOptions", "Reconstruction", "read_model"]

@@ -23,7 +23,7 @@ from pathlib import Path
 from sfm.clustering.options import ClusterOptions
 from sfm.core.options import OptionError, base_type, option_fields
 from sfm.errors import GraphsfmError, InputError
-from sfm.evaluation.options import EvaluateOptions
+from sfm.evaluation.options import AlignOptions, EvaluateOptions
 from sfm.execution.options import ExecutionOptions, make_executor
 from sfm.features.options import ExtractOptions
 from sfm.io.options import ExportOptions
@@ -47,6 +47,8 @@ COMMAND_OPTIONS: dict[str, tuple[type, ...]] = {
     "demo": (DemoOptions, ExecutionOptions, RecordingOptions),
     "evaluate": (EvaluateOptions,),
     "export": (ExportOptions,),
+    "info": (),
+    "align": (AlignOptions,),
     "synth": (SynthOptions,),
 }
 # ``graphsfm merge`` offers the mapper's options that the refinement after merging reads; the
@@ -54,7 +56,7 @@ COMMAND_OPTIONS: dict[str, tuple[type, ...]] = {
 ONLY_FIELDS: dict[tuple[str, type], tuple[str, ...]] = {
     ("merge", MapperOptions): ("min_num_matches", "max_reproj_error", "min_tri_angle", "intrinsics_refinement",
                                "refine_given_intrinsics", "loss", "loss_scale", "scale_weights",
-                               "ba_max_observations", "min_model_size", "seed"),
+                               "ba_max_observations", "min_model_size", "georegister", "gps_max_error", "seed"),
 }
 
 
@@ -146,8 +148,8 @@ def _recorder(args: argparse.Namespace, stage: str):
     return Recorder(workspace / f"recording-{stage}.rrd", workspace=workspace, spawn=rec.spawn)
 
 
-def _print(obj) -> None:
-    print(json.dumps(_rounded(obj, 6), indent=2, default=str))
+def _print(obj, digits: int = 6) -> None:
+    print(json.dumps(_rounded(obj, digits), indent=2, default=str))
 
 
 def _image_dir(images: str) -> Path:
@@ -221,7 +223,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     images = _image_dir(args.images) if args.images is not None else None
     report = reconstruct(images, Path(args.workspace), _reconstruct_options(args))
     _print({k: report.get(k) for k in ("images", "registered", "points", "mean_track_length",
-            "mean_reprojection_error", "num_clusters", "num_models", "times", "warnings") if k in report})
+            "mean_reprojection_error", "num_clusters", "num_models", "georegistration", "times", "warnings")
+            if k in report})
     return 0
 
 
@@ -252,21 +255,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from sfm.io.colmap_model import read_model, write_model, write_ply
+    from sfm.stages.model_tools import export
 
-    options = options_of(ExportOptions, args)
-    model = Path(args.model)
-    if not model.exists():
-        raise InputError(f"model not found: {model}")
-    recon = read_model(model)
-    out = Path(args.out)
-    if options.to == "ply":
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_ply(recon, out)
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-        write_model(recon, out, fmt=options.to)
-    log.info("wrote %s (%d images, %d points)", out, len(recon.images), len(recon.points3D))
+    images = _image_dir(args.images) if args.images is not None else None
+    _print(export(args.model, args.out, images=images, options=options_of(ExportOptions, args)))
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from sfm.stages.model_tools import info
+
+    _print(info(args.model), digits=10)
+    return 0
+
+
+def cmd_align(args: argparse.Namespace) -> int:
+    from sfm.stages.model_tools import align
+
+    _print(align(args.model, args.out, gps=args.gps, ref=args.ref, options=options_of(AlignOptions, args)), digits=10)
     return 0
 
 
@@ -318,9 +324,21 @@ def build_parser() -> argparse.ArgumentParser:
     p = _command(sub, "evaluate", "compare a model with ground truth; prints JSON", cmd_evaluate)
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
     p.add_argument("--gt", required=True, help="GT table (cameras_gt_opencv.txt) or a COLMAP model folder")
-    p = _command(sub, "export", "convert a model to COLMAP text, binary, or a PLY point cloud", cmd_export)
+    p = _command(sub, "export", "convert a model: COLMAP text or binary, PLY, undistorted images + PINHOLE model, "
+                 "nerfstudio transforms.json", cmd_export)
     p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
-    p.add_argument("out", help="output folder (txt, bin) or .ply file")
+    p.add_argument("out", help="output: a folder (txt, bin, undistorted, nerfstudio), a .ply or a .json file")
+    p.add_argument("--images", help="the model's image folder (undistorted: required; nerfstudio: where frames point)")
+    p = _command(sub, "info", "summarise a model: cameras, images, points, track length, reprojection error, "
+                 "georegistration", cmd_info)
+    p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
+    p = _command(sub, "align", "move a model onto GPS positions (ENU, metres) or a table of reference centres",
+                 cmd_align)
+    p.add_argument("model", help="COLMAP model folder (.bin or .txt)")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--gps", metavar="SOURCE", help="a database.db with GPS pose priors, or the image folder (EXIF)")
+    source.add_argument("--ref", metavar="TABLE", help="text file of 'IMAGE_NAME X Y Z' reference camera centres")
+    p.add_argument("out", help="output model folder")
     p = _command(sub, "synth", "make a scene with exact ground truth: a database of simulated matches, or images",
                  cmd_synth)
     _workspace(p, "output folder (new)")

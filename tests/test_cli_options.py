@@ -13,7 +13,7 @@ from sfm.core.options import OptionError, option_fields
 from sfm.mapper.options import MapperOptions
 
 # Arguments that are paths or logging switches, not options.
-ARGUMENTS = {"help", "workspace", "images", "model", "out", "gt", "verbose"}
+ARGUMENTS = {"help", "workspace", "images", "model", "out", "gt", "gps", "ref", "verbose"}
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:

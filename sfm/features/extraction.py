@@ -38,6 +38,10 @@ Conventions:
   COLMAP does: ``uint8(min(round(512 * d), 255))``. Dividing the stored bytes by 512 gives the
   unit vector back (up to rounding and the rare clipping). With ``root_sift=False`` the vector
   is L2-normalised instead, then quantised the same way.
+- Masks (``--masks DIR``, COLMAP's convention ``DIR/<image name>.png``, zero = ignore; an image
+  without one is used whole): SIFT detects only where the mask, shrunk with SIFT's image
+  (nearest pixel), is non-zero, and a keypoint whose full-resolution pixel (rounded) is masked
+  is dropped, so none is kept in a masked area.
 - Images, EXIF and grey levels: ``sfm.io.image_files``; cameras and ``--intrinsics``:
   ``sfm.features.cameras``; bad files and duplicates: the ``extract`` stage
   (``sfm.stages.extract``), which decodes the images and calls :func:`extract_features`.
@@ -45,6 +49,7 @@ Conventions:
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from sfm.features.options import ExtractOptions
@@ -52,22 +57,34 @@ from sfm.features.sift import detect_and_select
 from sfm.io.image_files import downscale
 
 
-def detect_sift(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:
+def detect_sift(gray: np.ndarray, options: ExtractOptions, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """SIFT on an 8-bit grey image as given: ``(keypoints (N, 4) float32 x, y, scale,
     orientation; descriptors (N, 128) uint8)``: at most ``max_num_features`` locations, each
     with at most ``MAX_ORIENTATIONS`` orientations, chosen by ``keep_features`` (module
     docstring; :func:`sfm.features.sift.detect_and_select`), in the order kept."""
     return detect_and_select(gray, options.contrast_threshold, options.edge_threshold,
-                             options.max_num_features, options.keep_features, options.root_sift)
+                             options.max_num_features, options.keep_features, options.root_sift, mask)
 
 
-def extract_features(gray: np.ndarray, options: ExtractOptions) -> tuple[np.ndarray, np.ndarray]:
+def extract_features(gray: np.ndarray, options: ExtractOptions,
+                     mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`detect_sift` on ``gray`` shrunk to ``max_image_size``, keypoints in ``gray``'s
-    pixels (OpenCV convention: ``x = (x_small + 0.5) * sx - 0.5``, scale times mean(sx, sy))."""
+    pixels (OpenCV convention: ``x = (x_small + 0.5) * sx - 0.5``, scale times mean(sx, sy)).
+    ``mask`` (bool, ``gray``'s shape): no keypoint is kept where it is False."""
     small, sx, sy = downscale(gray, options.max_image_size)
-    keypoints, descriptors = detect_sift(small, options)
+    small_mask = None
+    if mask is not None:
+        small_mask = mask.astype(np.uint8) * 255
+        if small.shape != gray.shape:
+            small_mask = cv2.resize(small_mask, (small.shape[1], small.shape[0]), interpolation=cv2.INTER_NEAREST)
+    keypoints, descriptors = detect_sift(small, options, small_mask)
     if (sx, sy) != (1.0, 1.0):
         keypoints[:, 0] = (keypoints[:, 0] + 0.5) * sx - 0.5
         keypoints[:, 1] = (keypoints[:, 1] + 0.5) * sy - 0.5
         keypoints[:, 2] *= (sx + sy) / 2.0
+    if mask is not None and len(keypoints):
+        col = np.clip(np.rint(keypoints[:, 0]).astype(np.int64), 0, mask.shape[1] - 1)
+        row = np.clip(np.rint(keypoints[:, 1]).astype(np.int64), 0, mask.shape[0] - 1)
+        keep = mask[row, col]
+        keypoints, descriptors = keypoints[keep], descriptors[keep]
     return keypoints, descriptors

@@ -42,6 +42,7 @@ from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 from sfm.io.database_schema import (
     CAMERA_MODEL_IDS,
     CAMERA_MODEL_NAMES,
+    COORDINATES_WGS84,
     DESCRIPTOR_TYPE_SIFT,
     GEOMETRY_COLUMNS,
     MAX_IMAGE_ID,
@@ -49,6 +50,7 @@ from sfm.io.database_schema import (
     SENSOR_TYPE_CAMERA,
     CameraRecord,
     ImageRecord,
+    PosePrior,
     TwoViewGeometry,
     image_ids_from_pair_id,
     pair_id,
@@ -236,6 +238,32 @@ class Database:
             frame = (cur.lastrowid, new_id, int(camera_id), SENSOR_TYPE_CAMERA)
             self._conn.execute("INSERT INTO frame_data VALUES (?, ?, ?, ?)", frame)
         return new_id
+
+    def write_pose_prior(self, image_id: int, camera_id: int, position: Any, covariance: Any = None,
+                         coordinate_system: int = COORDINATES_WGS84) -> None:
+        """The position prior of an image (COLMAP 4's ``pose_priors`` row, as pycolmap writes
+        it: the image's data id, its camera as the sensor, gravity unknown); replaces one there
+        was.  ``covariance`` (3, 3) or None (unknown: NaN)."""
+        cov = np.full(9, np.nan) if covariance is None else np.asarray(covariance, np.float64).reshape(9)
+        row = (int(image_id), int(camera_id), SENSOR_TYPE_CAMERA, _blob(np.asarray(position, np.float64).reshape(3), np.float64),
+               _blob(cov, np.float64), _blob(np.full(3, np.nan), np.float64), int(coordinate_system))
+        with self.transaction():
+            old = self._one("SELECT pose_prior_id FROM pose_priors WHERE corr_data_id=? AND corr_sensor_type=?",
+                            (int(image_id), SENSOR_TYPE_CAMERA))
+            self._conn.execute("INSERT OR REPLACE INTO pose_priors VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                               (None if old is None else old[0], *row))
+
+    def read_pose_priors(self) -> dict[int, PosePrior]:
+        """Image id -> its position prior (camera sensors only)."""
+        out = {}
+        sql = ("SELECT corr_data_id, corr_sensor_id, position, position_covariance, coordinate_system "
+               "FROM pose_priors WHERE corr_sensor_type = ?")
+        for image_id, camera_id, position, cov, system in self._conn.execute(sql, (SENSOR_TYPE_CAMERA,)):
+            pos = _array(position, np.float64, (3,))
+            cov = _array(cov, np.float64, (3, 3))
+            out[int(image_id)] = PosePrior(int(image_id), int(camera_id), np.full(3, np.nan) if pos is None else pos,
+                                           np.full((3, 3), np.nan) if cov is None else cov, int(system))
+        return out
 
     def write_keypoints(self, image_id: int, keypoints: Any) -> None:
         """Store (N, 2|4|6) keypoints given in OpenCV's pixel convention (adds 0.5 to x, y)."""

@@ -9,7 +9,7 @@ What ``sfm.io.database.Database`` reads and writes, independent of any connectio
   (:data:`CAMERA_MODEL_IDS`, :data:`CAMERA_MODEL_NAMES`); the sensor and descriptor type codes;
   and :class:`TwoViewConfig`, the codes of ``two_view_geometries.config`` (a verified pair has
   config >= 2, CALIBRATED).
-- Records rows decode into: :class:`CameraRecord`, :class:`ImageRecord` and
+- Records rows decode into: :class:`CameraRecord`, :class:`ImageRecord`, :class:`PosePrior` and
   :class:`TwoViewGeometry` (with :meth:`TwoViewGeometry.inverted`, the same geometry seen from
   image 2, as COLMAP inverts it when a pair is stored in the other order).
 """
@@ -32,6 +32,8 @@ CAMERA_MODEL_IDS: dict[str, int] = {
     "EQUIRECTANGULAR": 17,
 }  # fmt: skip
 CAMERA_MODEL_NAMES: dict[int, str] = {v: k for k, v in CAMERA_MODEL_IDS.items()}
+# ``pose_priors.coordinate_system`` (pycolmap's PosePriorCoordinateSystem)
+COORDINATES_UNDEFINED, COORDINATES_WGS84, COORDINATES_CARTESIAN = -1, 0, 1
 
 
 class TwoViewConfig(IntEnum):
@@ -124,6 +126,19 @@ class ImageRecord:
     image_id: int
     name: str
     camera_id: int
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior:
+    """A ``pose_priors`` row of an image: ``position`` (3,) in ``coordinate_system``
+    (:data:`COORDINATES_WGS84`: latitude deg, longitude deg, altitude m, as COLMAP stores GPS),
+    ``position_covariance`` (3, 3), NaN where unknown."""
+
+    image_id: int
+    camera_id: int
+    position: np.ndarray
+    position_covariance: np.ndarray
+    coordinate_system: int = COORDINATES_WGS84
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,6 +21,12 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
   ``max(W, H) / max(PixelXDimension, PixelYDimension)`` when the file was resized after the
   camera wrote those tags; else no prior. Priors outside ``[0.1, 50] * max(W, H)`` are treated
   as bogus EXIF and ignored.
+- Masks (:func:`read_mask`, COLMAP's convention): ``MASKS/<image name>.png``, a grey or colour
+  image of the upright image's size whose zero pixels are to be ignored (a mask of the stored,
+  unrotated size is turned upright with its image's EXIF orientation).
+- GPS (:func:`gps_from_exif`): the GPS IFD's latitude, longitude (degrees, minutes, seconds with
+  their N/S and E/W references) and altitude (metres, below sea level when GPSAltitudeRef is 1)
+  on WGS84; like COLMAP, all three must be there, else the image has no GPS.
 - A file that cannot be used raises :class:`BadImageError` whose message is the reason (empty
   file, not an image, truncated, ...). Pillow's decompression-bomb limit is lifted while we read:
   a 100-megapixel photo is a normal input here.
@@ -48,6 +54,8 @@ IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", 
 
 # EXIF tags (IFD0 and the Exif sub-IFD)
 _EXIF_IFD = 0x8769
+_GPS_IFD = 0x8825
+_GPS_LAT_REF, _GPS_LAT, _GPS_LON_REF, _GPS_LON, _GPS_ALT_REF, _GPS_ALT = 1, 2, 3, 4, 5, 6
 _ORIENTATION = 0x0112
 _MAKE, _MODEL = 0x010F, 0x0110
 _FOCAL_LENGTH = 0x920A
@@ -75,7 +83,8 @@ class ImageInfo:
     """What the camera of an image needs: upright size and EXIF facts.
 
     ``focal_px`` is the EXIF focal prior in pixels of the upright image (None: EXIF gives none);
-    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``.
+    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``; ``gps`` is
+    ``(latitude deg, longitude deg, altitude m)`` on WGS84 from EXIF, or None.
     """
 
     width: int
@@ -85,6 +94,7 @@ class ImageInfo:
     model: str = ""
     focal_px: float | None = None
     focal_source: str = "none"
+    gps: tuple[float, float, float] | None = None
 
 
 def find_images(image_dir: Path) -> list[str]:
@@ -154,6 +164,41 @@ def focal_prior_from_exif(tags: dict, width: int, height: int) -> tuple[float | 
     return None, "none"
 
 
+def _degrees(value: object) -> float | None:
+    """Degrees from an EXIF (degrees, minutes, seconds) triple of rationals, or None."""
+    if not isinstance(value, (tuple, list)) or not 1 <= len(value) <= 3:
+        return None
+    parts = [_number(v) for v in value]
+    if any(p is None for p in parts):
+        return None
+    return sum(p / 60.0**k for k, p in enumerate(parts))  # type: ignore[operator]
+
+
+def gps_from_exif(gps: dict) -> tuple[float, float, float] | None:
+    """``(latitude, longitude, altitude)`` from a GPS IFD (tag ids to values), or None when
+    one of them is missing or out of range (module docstring)."""
+    lat, lon, alt = _degrees(gps.get(_GPS_LAT)), _degrees(gps.get(_GPS_LON)), _number(gps.get(_GPS_ALT))
+    if lat is None or lon is None or alt is None or not (0 <= lat <= 90 and 0 <= lon <= 180):
+        return None
+    if _text(gps.get(_GPS_LAT_REF)).upper().startswith("S"):
+        lat = -lat
+    if _text(gps.get(_GPS_LON_REF)).upper().startswith("W"):
+        lon = -lon
+    ref = gps.get(_GPS_ALT_REF)
+    if (ref[0] if isinstance(ref, (bytes, tuple, list)) and len(ref) else _number(ref)) == 1:
+        alt = -alt
+    return float(lat), float(lon), float(alt)
+
+
+def _gps_tags(im: Image.Image) -> dict:
+    if im.format == "PNG" and "exif" not in im.info:
+        return {}
+    try:
+        return dict(im.getexif().get_ifd(_GPS_IFD))
+    except Exception:  # noqa: BLE001 - malformed EXIF is common and never fatal
+        return {}
+
+
 def _exif_tags(im: Image.Image) -> dict:
     """IFD0 and Exif sub-IFD tags merged (sub-IFD wins), read without decoding pixels."""
     if im.format == "PNG" and "exif" not in im.info:
@@ -178,7 +223,8 @@ def _info_from_pil(im: Image.Image) -> ImageInfo:
         width, height = height, width
     focal, source = focal_prior_from_exif(tags, width, height)
     return ImageInfo(
-        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source
+        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source,
+        gps_from_exif(_gps_tags(im)) if tags else None,
     )
 
 
@@ -266,6 +312,29 @@ def read_gray(data: bytes) -> tuple[np.ndarray, ImageInfo]:
     if gray.ndim != 2 or gray.shape != (info.height, info.width):
         raise BadImageError(f"unexpected decoded shape {gray.shape} for mode {im.mode}")
     return gray, info
+
+
+def mask_path(masks: Path, name: str) -> Path:
+    """Where COLMAP looks for the mask of image ``name``: ``masks/<name>.png``."""
+    return Path(masks) / f"{name}.png"
+
+
+def read_mask(data: bytes, info: ImageInfo) -> np.ndarray:
+    """The mask file's bytes as a boolean array of the upright image's shape (H, W): True
+    where features may be, False where the mask is zero (every channel, alpha ignored)."""
+    with _no_pixel_limit():
+        try:
+            with Image.open(BytesIO(data)) as im:
+                arr = np.asarray(im.convert("RGB") if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr") else im)
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError) as exc:
+            raise BadImageError(f"cannot read its mask: {exc}") from None
+    keep = arr.reshape(arr.shape[0], arr.shape[1], -1).any(axis=2)
+    if keep.shape == (info.width, info.height) and info.orientation in (5, 6, 7, 8) and info.width != info.height:
+        keep = np.asarray(Image.fromarray(keep).transpose(_UPRIGHT[info.orientation]))
+    if keep.shape != (info.height, info.width):
+        raise BadImageError(
+            f"its mask is {keep.shape[1]}x{keep.shape[0]} but the image is {info.width}x{info.height} (upright)")
+    return keep
 
 
 def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float, float]:

@@ -18,6 +18,8 @@ MERGE = "merge.json"
 REPORT = "report.json"
 RECORDING = "recording.rrd"
 LOG = "log.txt"
+#: Beside a georegistered model's files: the ENU origin and the fit (``sfm.evaluation.georegistration``).
+GEOREGISTRATION = "georegistration.json"
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -52,3 +54,18 @@ def update_report(workspace: Path, fields: dict, times: dict | None = None) -> d
         report["times"]["total"] = round(sum(report["times"].get(k, 0.0) for k in stages), 3)
     write_json_atomic(path, report)
     return report
+
+
+def write_georegistration(model_folder: Path, registration: dict | None) -> None:
+    """``model_folder/georegistration.json`` with the registration, or none at all."""
+    path = Path(model_folder) / GEOREGISTRATION
+    if registration is None:
+        path.unlink(missing_ok=True)
+    else:
+        write_json_atomic(path, registration)
+
+
+def read_georegistration(model_folder: Path) -> dict | None:
+    """The registration a model folder holds, or None."""
+    path = Path(model_folder) / GEOREGISTRATION
+    return read_json(path) if path.is_file() else None

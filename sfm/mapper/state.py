@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from backend.camera_models import has_bogus_params, reprojection_errors, unproject
+from backend.camera_models import focal_lengths, has_bogus_params, reprojection_errors, unproject
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.options import MapperOptions
 from sfm.features.sift import localization_sigma
@@ -162,8 +162,7 @@ class MapperState:
         return self.camera_focal(self.cam_index[i])
 
     def camera_focal(self, c: int) -> float:
-        spec_focal = self.params[c][[0, 1]] if self.priors[c].model in ("PINHOLE", "OPENCV") else self.params[c][[0]]
-        return float(np.mean(spec_focal))
+        return float(np.mean(focal_lengths(self.priors[c].model, self.params[c])))
 
     def norm_of(self, i: int, keypoints: np.ndarray) -> np.ndarray:
         prior = self.camera_of(i)

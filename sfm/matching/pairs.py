@@ -6,6 +6,10 @@
   descriptors with a seeded ``MiniBatchKMeans``; similarity is the dot product of the VLAD
   vectors and every image keeps its ``top_k`` most similar images (symmetric union).
 - ``auto``: exhaustive below ``exhaustive_threshold`` images, retrieval at or above it.
+- ``spatial``: retrieval, plus each image's ``spatial_neighbors`` nearest images by position
+  (GPS in a local metric frame) no further than ``spatial_max_distance`` (COLMAP's spatial
+  matcher, OpenSfM's GPS neighbours: drone and street sets); images without a position get
+  their retrieval pairs only.
 - ``sequential`` window N > 0 adds (i, i+1 .. i+N) in the order the ids are given (callers pass
   name order), on top of the pairs above.
 
@@ -21,7 +25,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-PAIR_METHODS = ("auto", "exhaustive", "retrieval")
+PAIR_METHODS = ("auto", "exhaustive", "retrieval", "spatial")
 VOCABULARY_WORDS = 64
 SAMPLES_PER_IMAGE = 200
 MAX_VOCABULARY_SAMPLES = 100_000
@@ -119,6 +123,25 @@ def retrieval_pairs(
     return _unique_pairs(np.concatenate(parts))
 
 
+def spatial_pairs(image_ids: Sequence[int], positions: np.ndarray, neighbors: int, max_distance: float) -> np.ndarray:
+    """Each image with its ``neighbors`` nearest images by ``positions`` (N, 3) in metres, up to
+    ``max_distance`` away (0: any distance); rows with a non-finite position take no part."""
+    from scipy.spatial import cKDTree
+
+    ids = np.asarray(image_ids, np.int64)
+    pos = np.asarray(positions, np.float64).reshape(-1, 3)
+    known = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
+    k = min(int(neighbors), len(known) - 1)
+    if k < 1:
+        return np.zeros((0, 2), np.int64)
+    tree = cKDTree(pos[known])
+    dist, idx = tree.query(pos[known], k=k + 1, distance_upper_bound=max_distance if max_distance > 0 else np.inf)
+    rows = np.repeat(np.arange(len(known)), k + 1)
+    ok = np.isfinite(dist.ravel())
+    pairs = np.stack([ids[known[rows[ok]]], ids[known[idx.ravel()[ok]]]], axis=1)
+    return _unique_pairs(pairs)
+
+
 def global_descriptors(
     image_ids: Sequence[int], load_descriptors: Callable[[int], np.ndarray], seed: int = 0,
     num_words: int = VOCABULARY_WORDS,
@@ -135,13 +158,21 @@ def select_pairs(
     image_ids: Sequence[int], method: str = "auto", *, top_k: int = 30, sequential: int = 0,
     exhaustive_threshold: int = 200, seed: int = 0,
     load_descriptors: Callable[[int], np.ndarray] | None = None,
+    positions: np.ndarray | None = None, spatial_neighbors: int = 50, spatial_max_distance: float = 100.0,
 ) -> np.ndarray:  # fmt: skip
     """The sorted unique (P, 2) pairs to match among ``image_ids`` (given in name order).
 
-    ``method`` one of auto|exhaustive|retrieval; retrieval needs ``load_descriptors``.
+    ``method`` one of auto|exhaustive|retrieval|spatial; retrieval needs ``load_descriptors``,
+    spatial also ``positions`` (N, 3) metres, NaN rows for images without one.
     """
     if method not in PAIR_METHODS:
         raise ValueError(f"pairs must be one of {'|'.join(PAIR_METHODS)}, got {method!r}")
+    spatial = np.zeros((0, 2), np.int64)
+    if method == "spatial":
+        if positions is None:
+            raise ValueError("spatial pairs need positions")
+        spatial = spatial_pairs(image_ids, positions, spatial_neighbors, spatial_max_distance)
+        method = "retrieval"
     if method == "auto":
         method = "exhaustive" if len(image_ids) < exhaustive_threshold else "retrieval"
     if method == "retrieval" and top_k >= len(image_ids) - 1:
@@ -153,4 +184,4 @@ def select_pairs(
             raise ValueError("retrieval pairs need descriptors (load_descriptors)")
         vectors = global_descriptors(image_ids, load_descriptors, seed)
         pairs = retrieval_pairs(image_ids, vectors, top_k)
-    return _unique_pairs(np.concatenate([pairs, sequential_pairs(image_ids, sequential)]))
+    return _unique_pairs(np.concatenate([pairs, spatial, sequential_pairs(image_ids, sequential)]))

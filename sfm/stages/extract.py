@@ -1,7 +1,8 @@
 """The ``extract`` stage: SIFT keypoints and RootSIFT descriptors of every image, into database.db.
 
 :func:`run_extract` finds the images (``sfm.io.image_files``), reads their headers and EXIF,
-gives each a camera (``sfm.features.cameras``), runs :func:`sfm.features.extraction.extract_features`
+gives each a camera (``sfm.features.cameras``) and, from its EXIF GPS, a position prior
+(the database's ``pose_priors``, WGS84), runs :func:`sfm.features.extraction.extract_features`
 on each in parallel (on an executor of ``sfm.execution``), and writes each image as soon as it
 returns (``sfm.stages.extract_writer``).
 
@@ -38,7 +39,8 @@ from sfm.features.cameras import CameraSpec, IntrinsicsTable, assign_cameras, re
 from sfm.features.extraction import extract_features
 from sfm.features.options import ExtractOptions
 from sfm.io.database import Database
-from sfm.io.image_files import BadImageError, ImageInfo, find_images, probe_image, read_gray, workers_for_memory
+from sfm.io.image_files import (BadImageError, ImageInfo, find_images, mask_path, probe_image, read_gray, read_mask,
+                                workers_for_memory)
 from sfm.io.workspace import DATABASE
 from sfm.stages.extract_writer import SIDECAR, ExtractWriter, extract_ledger
 
@@ -71,6 +73,8 @@ class _Job:
     path: str
     options: ExtractOptions
     data: bytes | None = None  # the file's bytes, for workers on other machines (no shared disk)
+    mask: str | None = None  # the mask file (``--masks``), if the image has one
+    mask_data: bytes | None = None  # its bytes, for workers on other machines
 
 
 @dataclass(frozen=True)
@@ -94,7 +98,10 @@ def _extract_job(job: _Job) -> _Extracted:
     try:
         data = job.data if job.data is not None else Path(job.path).read_bytes()
         gray, info = read_gray(data)
-        keypoints, descriptors = extract_features(gray, job.options)
+        mask = None
+        if job.mask is not None:
+            mask = read_mask(job.mask_data if job.mask_data is not None else Path(job.mask).read_bytes(), info)
+        keypoints, descriptors = extract_features(gray, job.options, mask)
     except BadImageError as exc:
         return _Extracted(job.name, str(exc))
     except OSError as exc:
@@ -112,14 +119,24 @@ def _with_bytes(jobs: Iterable[_Job]) -> Iterator[_Job]:
     """Jobs carrying their file's bytes (read lazily, as the executor asks for the next job),
     for workers on other machines."""
     for job in jobs:
+        data = mask_data = None  # on a failed read the worker reports the error as it would locally
         try:
             data = Path(job.path).read_bytes()
+            mask_data = Path(job.mask).read_bytes() if job.mask is not None else None
         except OSError:
-            data = None  # the worker reports the error as it would for a local read
-        yield replace(job, data=data)
+            pass
+        yield replace(job, data=data, mask_data=mask_data)
 
 
 # ----------------------------------------------------------------------------- the stage
+def _mask_of(options: ExtractOptions, name: str) -> str | None:
+    """The mask file of image ``name`` (COLMAP's ``MASKS/<name>.png``), None without one."""
+    if options.masks is None:
+        return None
+    path = mask_path(options.masks, name)
+    return str(path) if path.is_file() else None
+
+
 def _probe_all(jobs: list[_Job], executor, max_workers: int, bad: list[tuple[str, str]]) -> dict[str, ImageInfo]:
     """Each image's header (size, EXIF): on the local workers, or here when they are remote
     (header reads are cheaper than shipping every file)."""
@@ -158,7 +175,7 @@ def _extract_all(
                 "zero-baseline pair", r.name, first_by_digest[r.digest],
             )  # fmt: skip
         first_by_digest.setdefault(r.digest, r.name)
-        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors)
+        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors, probed.gps)
         extracted += 1
     return extracted
 
@@ -185,6 +202,8 @@ def run_extract(
     if not names:
         raise InputError(f"no images found in {image_dir}")
     table: IntrinsicsTable | None = None
+    if options.masks is not None and not Path(options.masks).is_dir():
+        raise InputError(f"mask folder not found: {options.masks}")
     if options.intrinsics is not None:
         table = read_intrinsics(options.intrinsics)
         warn_unused_lines(table, names)
@@ -200,12 +219,12 @@ def run_extract(
         if skipped:
             logger.info("%d of %d images already have features in %s: skipped", skipped,
                         len(names), db.path)  # fmt: skip
-        jobs = [_Job(n, str(image_dir / n), options) for n in todo]
+        jobs = [_Job(n, str(image_dir / n), options, mask=_mask_of(options, n)) for n in todo]
         if jobs:
             max_workers = workers_for_memory(options.max_image_size)
             try:
                 infos = _probe_all(jobs, executor, max_workers, bad)
-                specs = assign_cameras(infos, options.camera_mode, table)
+                specs = assign_cameras(infos, options.camera_mode, table, options.camera_model)
                 writer.check_reused(specs)
                 jobs = [j for j in jobs if j.name in infos]
                 extracted = _extract_all(jobs, infos, specs, writer, executor, max_workers, bad)

@@ -23,18 +23,20 @@ from sfm.errors import InputError, NoModelError
 from sfm.execution.local import LocalExecutor, TaskResult
 from sfm.io.colmap_model import read_model, write_model
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
-from sfm.io.workspace import CLUSTERS, DATABASE, read_json, update_report
+from sfm.io.workspace import CLUSTERS, DATABASE, read_georegistration, read_json, update_report, write_georegistration
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.payload import MapperInput
+from sfm.stages.georegister import georegister_models
 from sfm.stages.payloads import ClusterPayloads
 from sfm.viz.recorder import Recorder, log_model
 
 log = logging.getLogger(__name__)
 
 
-def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
-    """Models to ``folder/0``, ``folder/1``, ... (stale numbered folders removed first)."""
+def write_models(models: list[Reconstruction], folder: Path, registrations: list[dict | None] | None = None) -> list[dict]:
+    """Models to ``folder/0``, ``folder/1``, ... (stale numbered folders removed first), each
+    with its ``georegistration.json`` when ``registrations`` has one."""
     if folder.exists():
         for old in folder.iterdir():
             if old.is_dir() and old.name.isdigit():
@@ -42,7 +44,10 @@ def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
     out = []
     for m, model in enumerate(models):
         write_model(model, folder / str(m))
-        out.append({"path": str(folder / str(m)), **model.summary()})
+        registration = registrations[m] if registrations else None
+        write_georegistration(folder / str(m), registration)
+        out.append({"path": str(folder / str(m)), **model.summary(),
+                    **({"georegistered": True} if registration else {})})
     return out
 
 
@@ -101,7 +106,8 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     for k, res in _map_clusters(payloads, todo, options.for_model(direct), executor, recorder):
         label = payloads.labels[k]
         models = res.value or []
-        written = write_models(models, _folder(workspace, direct, label))
+        registrations = georegister_models(models, db_path, options) if direct else None
+        written = write_models(models, _folder(workspace, direct, label), registrations)
         per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
                           "models": written, "error": res.error}
         if res.error is None:  # a failed cluster is tried again by the next run
@@ -116,7 +122,8 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     num_images = len({n for names in payloads.names for n in names})  # clusters overlap
     fields = {"images": num_images, "executor": executor.name, "scheduler": getattr(executor, "address", None),
               "clusters": per_cluster, "num_clusters": len(payloads),
-              "mapper_options": asdict(options), "warnings": []}  # no stale warning of an earlier run
+              "mapper_options": asdict(options), "warnings": [],  # no stale warning of an earlier run
+              "georegistration": read_georegistration(workspace / "sparse" / "0") if direct else None}
     if direct:
         flat.sort(key=lambda m: -m["registered"])
         fields["num_models"] = len(flat)

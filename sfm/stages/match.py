@@ -21,9 +21,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from sfm.core.geodesy import enu_from_wgs84
 from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor
 from sfm.io.database import Database
+from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.io.ledger import options_record, resume_or_restart
 from sfm.matching.options import MatchOptions
 from sfm.matching.pair_matcher import PairBatch, close_matchers, match_batch
@@ -91,6 +93,24 @@ def _usable_images(db: Database, ordered_ids: list[int], names: dict[int, str]) 
     return usable
 
 
+def _gps_positions(db: Database, image_ids: list[int]):
+    """(N, 3) east-north-up metres of the images' WGS84 position priors (origin: their mean),
+    NaN rows for images without one."""
+    priors = db.read_pose_priors()
+    lla = np.full((len(image_ids), 3), np.nan)
+    for row, i in enumerate(image_ids):
+        p = priors.get(i)
+        if p is not None and p.coordinate_system == COORDINATES_WGS84:
+            lla[row] = p.position
+    known = np.all(np.isfinite(lla), axis=1)
+    if not known.any():
+        logger.warning("pairs spatial: no image has a GPS position; retrieval pairs only")
+        return lla
+    logger.info("pairs spatial: %d of %d images have a GPS position", known.sum(), len(image_ids))
+    lla[known] = enu_from_wgs84(lla[known], lla[known].mean(axis=0))
+    return lla
+
+
 def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None) -> MatchResult:
     """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring):
     the image graph's edges and weights (paper section 3.1.1).
@@ -113,9 +133,12 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
             raise InputError(f"{len(usable)} image(s) in {db_path} with keypoints and descriptors: SfM needs at least 2")
         ledger = resume_or_restart(workspace, "match", options_record(options), db.clear_matches,
                                    "the stored matches are deleted and every pair is matched again")
+        positions = _gps_positions(db, usable) if options.pairs == "spatial" else None
         pairs = select_pairs(usable, options.pairs, top_k=options.top_k, sequential=options.sequential,
                              exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
-                             load_descriptors=db.read_descriptors)  # fmt: skip
+                             load_descriptors=db.read_descriptors, positions=positions,
+                             spatial_neighbors=options.spatial_neighbors,
+                             spatial_max_distance=options.spatial_max_distance)  # fmt: skip
         done = db.pairs_with_geometry()
         todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
         skipped = len(pairs) - len(todo)

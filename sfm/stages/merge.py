@@ -26,6 +26,7 @@ from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components
 from sfm.merge.options import MergeOptions
 from sfm.merge.refinement import refine_with_poses
+from sfm.stages.georegister import georegister_models
 from sfm.stages.map import failed_clusters_warning, write_models
 from sfm.stages.payloads import ClusterPayloads
 from sfm.viz.recorder import Recorder, log_model
@@ -126,11 +127,13 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         if len(final.images) >= mapper_options.smallest_model(payloads.sizes[k]):
             finals.append(final)
     finals.sort(key=lambda m: -len(m.images))
-    written = write_models(finals, workspace / "sparse")
+    registrations = georegister_models(finals, workspace / DATABASE, mapper_options)
+    written = write_models(finals, workspace / "sparse", registrations)
     for k, final in enumerate(finals):
         log_model(recorder, "world" if k == 0 else f"world/model{k}", final)
     t_ba = time.perf_counter() - t0 - t_merge
-    fields = {"num_models": len(finals), "num_local_models": num_local, "merge_components": len(plans), "models": written}
+    fields = {"num_models": len(finals), "num_local_models": num_local, "merge_components": len(plans), "models": written,
+              "georegistration": registrations[0] if registrations else None}
     if written:
         fields.update({k: written[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
     failed = read_json(workspace / REPORT).get("failed_clusters", []) if (workspace / REPORT).exists() else []

@@ -15,6 +15,7 @@ import numpy as np
 from sfm.features.sift import keypoint_scales
 from sfm.io.database import Database
 from sfm.mapper.payload import CameraPrior, MapperInput
+from sfm.stages.extract_writer import given_camera_ids
 
 
 class ClusterPayloads(Sequence[MapperInput]):
@@ -22,13 +23,16 @@ class ClusterPayloads(Sequence[MapperInput]):
     when indexed: each holds its cluster's keypoints and verified matches, so building them
     one at a time keeps memory to the clusters in flight.  Images are named, everything else
     is arrays: a payload needs nothing from the caller's disk.  ``labels``, ``names`` and
-    ``sizes`` need no read."""
+    ``sizes`` need no read.  With ``fixed_intrinsics`` the cameras the ``--intrinsics`` file gave
+    are held fixed (``WORK/extract.json``; in a database made elsewhere, its PINHOLE cameras)."""
 
     def __init__(self, db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
                  min_inliers: int, labels: list[str] | None = None) -> None:
         self.db_path, self.fixed_intrinsics, self.min_inliers = Path(db_path), fixed_intrinsics, min_inliers
         with Database(db_path, readonly=True) as db:
             self.images, self.cams = db.read_images(), db.read_cameras()
+        given = given_camera_ids(self.db_path.parent)
+        self.given = {c for c, cam in self.cams.items() if cam.model == "PINHOLE"} if given is None else given
         by_name = {im.name: iid for iid, im in self.images.items()}
         self.whole = clusters is None
         self.groups = [sorted(self.images)] if clusters is None else [sorted(by_name[n] for n in c) for c in clusters]
@@ -50,7 +54,7 @@ class ClusterPayloads(Sequence[MapperInput]):
         local = {iid: n for n, iid in enumerate(ids)}
         cameras = {
             c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
-                           cams[c].prior_focal_length, fixed=self.fixed_intrinsics and cams[c].model == "PINHOLE")
+                           cams[c].prior_focal_length, fixed=self.fixed_intrinsics and c in self.given)
             for c in sorted({images[i].camera_id for i in ids})
         }
         pairs = [(local[a], local[b], g.inlier_matches.astype(np.int32), int(g.config))
