@@ -112,6 +112,7 @@ def plan_merges(
     cluster_ids: Sequence[int],
     sizes: Mapping[int, int],
     weights: Mapping[tuple[int, int], float],
+    anchor: int | None = None,
 ) -> list[MergePlan]:
     """Plan the merges of local reconstructions: MinST, then MHT anchor (paper section 3.2.3,
     Alg. 2, lines 2-12).
@@ -121,11 +122,15 @@ def plan_merges(
         sizes: size of every cluster (used to pick the anchor when two nodes remain).
         weights: alignment weight (MSD, Eq. 11) of cluster pairs ``(a, b)``; ``math.inf`` or
             an absent pair means the two clusters cannot be aligned.
+        anchor: a cluster given as the base node of its component (Alg. 2 with the anchor
+            given: an existing model that new clusters are merged into and that must not move);
+            that component's tree is rooted there instead of at a minimum-height-tree centre
+            (:func:`_plan_rooted`).  The other components are planned as without it.
 
     Returns:
         One :class:`MergePlan` per connected component of the MinST forest, ordered by total
-        size descending, ties by smallest cluster id. An isolated cluster is a plan of its own
-        with itself as anchor.
+        size descending, ties by smallest cluster id; with ``anchor``, its component first. An
+        isolated cluster is a plan of its own with itself as anchor.
     """
     ids = [int(c) for c in cluster_ids]
     if len(set(ids)) != len(ids):
@@ -133,6 +138,8 @@ def plan_merges(
     missing = [c for c in ids if c not in sizes]
     if missing:
         raise ValueError(f"no size for clusters {missing}")
+    if anchor is not None and int(anchor) not in ids:
+        raise ValueError(f"anchor {anchor} is not one of the clusters")
 
     mst_edges = minimum_spanning_edges(ids, weights)
     forest = nx.Graph()
@@ -142,8 +149,11 @@ def plan_merges(
     plans = []
     for comp in nx.connected_components(forest):
         comp_edges = tuple(e for e in mst_edges if e[0] in comp)
-        plans.append(_plan_tree(sorted(comp), comp_edges, sizes))
-    plans.sort(key=lambda p: (-p.total_size, p.clusters[0]))
+        if anchor is not None and int(anchor) in comp:
+            plans.append(_plan_rooted(sorted(comp), comp_edges, sizes, int(anchor)))
+        else:
+            plans.append(_plan_tree(sorted(comp), comp_edges, sizes))
+    plans.sort(key=lambda p: (p.anchor != anchor, -p.total_size, p.clusters[0]))
     logger.info(
         "merge plan: %d clusters, %d MinST edges, %d components, anchors %s",
         len(ids),
@@ -209,4 +219,49 @@ def _plan_tree(
         path=path,
         edges=edges,
         merge_order=tuple(merge_order),
+    )
+
+
+def _plan_rooted(
+    nodes: list[int], edges: tuple[tuple[int, int, float], ...], sizes: Mapping[int, int], anchor: int
+) -> MergePlan:
+    """Alg. 2 with the base node given (lines 3-12 peel the leaves until one node is left; here
+    that node is ``anchor``): the MinST is rooted at ``anchor``, every other node merges into its
+    neighbour towards it, and a node merges in the layer after the last of its own children
+    (a leaf in layer 1), so the layers are the peeling order of Alg. 2 that ends at ``anchor``."""
+    neighbours: dict[int, list[int]] = {v: [] for v in nodes}
+    for a, b, _ in edges:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    parent: dict[int, int | None] = {anchor: None}
+    order = [anchor]  # breadth first from the anchor, neighbours by id
+    for v in order:
+        for w in sorted(neighbours[v]):
+            if w not in parent:
+                parent[w] = v
+                order.append(w)
+    height = {v: 0 for v in nodes}
+    for v in reversed(order[1:]):
+        p = parent[v]
+        height[p] = max(height[p], height[v] + 1)  # type: ignore[index]
+    layer = {v: height[v] + 1 for v in nodes if v != anchor}
+    num_layers = height[anchor]
+    layer[anchor] = num_layers
+    path: dict[int, tuple[int, ...]] = {}
+    for v in nodes:
+        chain = [v]
+        while parent[chain[-1]] is not None:
+            chain.append(parent[chain[-1]])  # type: ignore[arg-type]
+        path[v] = tuple(chain)
+    merge_order = tuple((v, parent[v]) for v in sorted((v for v in nodes if v != anchor), key=lambda v: (layer[v], v)))
+    return MergePlan(
+        anchor=anchor,
+        clusters=tuple(nodes),
+        total_size=sum(int(sizes[v]) for v in nodes),
+        parent={v: parent[v] for v in nodes},
+        layer=layer,
+        num_layers=num_layers,
+        path=path,
+        edges=edges,
+        merge_order=merge_order,  # type: ignore[arg-type]
     )

@@ -1,6 +1,7 @@
 """graphsfm's application: images in, cameras and a 3D point cloud out (GraphSfM, paper Figure 1).
 
-``sfm.reconstruct(images, workspace, **options)`` runs every stage; ``sfm.run_extract``,
+``sfm.reconstruct(images, workspace, **options)`` runs every stage, ``sfm.extend(workspace,
+images, **options)`` adds new photos to a finished model; ``sfm.run_extract``,
 ``run_match``, ``run_cluster``, ``run_map`` and ``run_merge`` run one each (``sfm.api``).  The
 command line (``sfm.cli``) is the same functions behind flags.
 
@@ -28,7 +29,7 @@ in a cycle):
 - ``mapper``: incremental SfM of one cluster (section 3.2).  ``merge``: the cluster graph, the
   merge plan and the refinement of the merged model (section 3.2, Alg. 2).
 - ``stages``: one module per stage (``extract``, ``match``, ``cluster``, ``map``, ``merge``,
-  ``reconstruct``, ``synth``, ``demo``), the only code that writes the workspace.
+  ``reconstruct``, ``extend``, ``synth``, ``demo``), the only code that writes the workspace.
 - ``graph`` and ``backend`` (top-level packages beside ``sfm``) are array libraries: the graph
   algorithms (NCut, MaxST expansion, MinST, minimum-height tree) and the numerical optimisation
   (GTSAM bundle adjustment, Sim3 estimation).  They never import ``sfm`` nor each other.
@@ -65,10 +66,10 @@ was read but no model could be made.
 
 from __future__ import annotations
 
-_API = ("reconstruct", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
+_API = ("reconstruct", "extend", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
         "export", "info", "align",
         "ExtractOptions", "MatchOptions", "ClusterOptions", "MapperOptions", "MergeOptions", "ExecutionOptions",
-        "RecordingOptions", "ExportOptions", "AlignOptions", "Reconstruction", "read_model")
+        "RecordingOptions", "ExportOptions", "AlignOptions", "ExtendOptions", "Reconstruction", "read_model")
 
 
 def __getattr__(name: str):

@@ -29,7 +29,7 @@ from sfm.features.options import ExtractOptions
 from sfm.io.options import ExportOptions
 from sfm.mapper.options import MapperOptions
 from sfm.matching.options import MatchOptions
-from sfm.merge.options import MergeOptions
+from sfm.merge.options import ExtendOptions, MergeOptions
 from sfm.synthetic.options import DemoOptions, SynthOptions
 from sfm.viz.options import RecordingOptions
 
@@ -44,6 +44,8 @@ COMMAND_OPTIONS: dict[str, tuple[type, ...]] = {
     "merge": (MergeOptions, MapperOptions, RecordingOptions),
     "reconstruct": (ExtractOptions, MatchOptions, ClusterOptions, MapperOptions, MergeOptions, ExecutionOptions,
                     RecordingOptions),
+    "extend": (ExtendOptions, ExtractOptions, MatchOptions, ClusterOptions, MapperOptions, MergeOptions,
+               ExecutionOptions, RecordingOptions),
     "demo": (DemoOptions, ExecutionOptions, RecordingOptions),
     "evaluate": (EvaluateOptions,),
     "export": (ExportOptions,),
@@ -228,6 +230,18 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_extend(args: argparse.Namespace) -> int:
+    from sfm.stages.extend import ExtendRunOptions, extend
+
+    images = _image_dir(args.images) if args.images is not None else None
+    base = _reconstruct_options(args)
+    options = ExtendRunOptions(**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)},
+                               extend=options_of(ExtendOptions, args))
+    summary = extend(Path(args.workspace), images, options)
+    _print({k: v for k, v in summary.items()})
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from sfm.stages.demo import run_demo
 
@@ -318,6 +332,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = _command(sub, "reconstruct", "every stage: extract, match, cluster, map, merge", cmd_reconstruct)
     p.add_argument("--images", help="image folder (omit to start from an existing database.db)")
     _workspace(p, "output folder")
+    p = _command(sub, "extend", "add new photos to the finished model WORK/sparse/0 as new clusters merged into it",
+                 cmd_extend)
+    p.add_argument("--images", help="folder of the new photos (omit: the database's images no model registers)")
+    _workspace(p, "workspace with a finished model (sparse/0) and its database.db")
     p = _command(sub, "demo", "render a small scene, reconstruct it with several clusters, print its accuracy",
                  cmd_demo)
     p.add_argument("workspace", help="output folder (new)")

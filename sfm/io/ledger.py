@@ -9,7 +9,8 @@ database, the clusters, the local models), not by time stamps, so a stage that r
 same result does not force the later ones to run again.
 
 ``map`` also records each cluster as it finishes, so a run killed during ``map`` keeps the
-clusters that were done.  ``extract`` and ``match`` resume per image and per pair on their own
+clusters that were done; ``extend`` (new images added to the finished model) records its
+sub-steps and its clusters the same way, so a killed extension resumes where it stopped.  ``extract`` and ``match`` resume per image and per pair on their own
 (the database is written one transaction per image or batch); the ledger only tells them when
 their options changed, which makes their earlier rows stale.
 
@@ -35,7 +36,7 @@ from sfm.io.workspace import read_json, write_json_atomic
 log = logging.getLogger(__name__)
 
 LEDGER = "stages.json"
-STAGES = ("extract", "match", "cluster", "map", "merge")
+STAGES = ("extract", "match", "cluster", "map", "merge", "extend")
 # How a stage runs, never what it computes.
 EXECUTION_ONLY = frozenset({"num_workers", "workers"})
 

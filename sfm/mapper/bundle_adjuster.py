@@ -12,6 +12,9 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
 - Global BA when the model has grown by ``global_ba_ratio``: every registered image, on a subset
   of the tracks (TheiaSfM's selection: each image's best track per grid cell keeps the poses
   from drifting; the rest are re-estimated with the cameras held).
+- BA of a region (a model extended by new images, ``graphsfm extend``): the given images and
+  the registered images that share points with them free, every point those free images see,
+  the other images that see those points held; its cost grows with the region, not the model.
 - Final BAs of a model: every image and every track, to a tighter tolerance; above
   ``ba_max_observations`` observations as the consensus of BAs over random track parts
   (``backend.partitioned_ba``), the points then re-estimated with the cameras held.
@@ -101,6 +104,41 @@ class BundleAdjuster:
                 self.refine_points(np.setdiff1d(tracks, subset))
         s.drop_degenerate_cameras()
         s.filter_observations(tracks)
+
+    def region(self, images: np.ndarray, loss_scale: float | None = None) -> np.ndarray:
+        """Final BA around ``images`` (the images added to a finished model): they and the
+        registered images that share an inlier point with them are free, every point a free
+        image sees is optimised, and the other images that see those points are held, so the
+        rest of the model anchors the region (the local BA of :meth:`local` grown to a set of
+        new images, with the neighbours' own points in it).  Intrinsics are refined only when
+        no image outside the free ones uses the camera.  Then COLMAP's filtering of those
+        points.  Returns the optimised tracks."""
+        s = self.state
+        images = np.asarray(images, dtype=np.int64)
+        images = images[s.registered[images]]
+        if len(images) == 0:
+            return np.zeros(0, np.int64)
+        seen = np.unique(s.obs_track[np.concatenate([s.image_rows[i] for i in images])])
+        rows, _ = s.inlier_rows(seen[s.track_valid[seen]])
+        free = np.union1d(images, np.unique(s.obs_image[rows]))
+        own = np.concatenate([s.image_rows[i] for i in free])
+        tracks = np.unique(s.obs_track[own[s.obs_inlier[own]]])
+        tracks = tracks[s.track_valid[tracks]]
+        outside = s.registered.copy()
+        outside[free] = False
+        refine = self.opts.intrinsics_refinement
+        if np.intersect1d(np.unique(s.cam_index[free]), np.unique(s.cam_index[outside])).size:
+            refine = "none"
+        parts = self._num_parts(tracks)
+        log.info("%s: BA of the region around %d images: %d images free, %d points", s.payload.label,
+                 len(images), len(free), len(tracks))
+        self._adjust(free, tracks, refine, 100, FINAL_TOLERANCE, parts=parts,
+                     loss_scale=self._global_loss_scale() if loss_scale is None else loss_scale)
+        if parts > 1:
+            self.refine_points(tracks)
+        s.drop_degenerate_cameras()
+        s.filter_observations(tracks)
+        return tracks
 
     def refine_points(self, tracks: np.ndarray) -> None:
         """Re-estimate the given points from their inlier rows with the cameras held (in

@@ -12,6 +12,10 @@
   their retrieval pairs only.
 - ``sequential`` window N > 0 adds (i, i+1 .. i+N) in the order the ids are given (callers pass
   name order), on top of the pairs above.
+- ``extension_pairs``: the pairs of images added to a finished model, each with at least one
+  new image: new x new by the rule above, and each new image with its ``top_k`` most similar
+  old images (VLAD over a vocabulary learned from the new images), so the matching grows with
+  the new images, not with the whole set.
 
 A pair is ``(id1, id2)`` with ``id1 < id2``; results are sorted unique ``(P, 2)`` int64 arrays.
 No I/O here: retrieval reads descriptors through a callable the caller provides, twice per image
@@ -185,3 +189,63 @@ def select_pairs(
         vectors = global_descriptors(image_ids, load_descriptors, seed)
         pairs = retrieval_pairs(image_ids, vectors, top_k)
     return _unique_pairs(np.concatenate([pairs, spatial, sequential_pairs(image_ids, sequential)]))
+
+
+def extension_pairs(
+    new_ids: Sequence[int], old_ids: Sequence[int], method: str = "auto", *, top_k: int = 30, sequential: int = 0,
+    exhaustive_threshold: int = 200, seed: int = 0,
+    load_descriptors: Callable[[int], np.ndarray] | None = None,
+    positions: np.ndarray | None = None, spatial_neighbors: int = 50, spatial_max_distance: float = 100.0,
+) -> np.ndarray:  # fmt: skip
+    """The sorted unique (P, 2) pairs to match when ``new_ids`` are added to a model of
+    ``old_ids`` (both in name order): every pair has at least one new image.
+
+    - new x new: :func:`select_pairs` among the new images (the same ``method``).
+    - new x old: every such pair when the method resolves to exhaustive over all the images
+      (``auto`` below ``exhaustive_threshold`` images in all, or ``top_k`` reaching every old
+      image); otherwise each new image's ``top_k`` most similar old images by VLAD, with a
+      vocabulary learned from the new images' descriptors (the old images are only described,
+      one at a time, never matched among themselves).  ``spatial`` adds each new image's nearest
+      old images by ``positions`` (rows: new images, then old ones).
+    """
+    if method not in PAIR_METHODS:
+        raise ValueError(f"pairs must be one of {'|'.join(PAIR_METHODS)}, got {method!r}")
+    new = np.asarray(new_ids, np.int64)
+    old = np.asarray(old_ids, np.int64)
+    if len(new) == 0:
+        return np.zeros((0, 2), np.int64)
+    new_pos = None if positions is None else np.asarray(positions, np.float64)[: len(new)]
+    within = select_pairs(new, method, top_k=top_k, sequential=sequential, exhaustive_threshold=exhaustive_threshold,
+                          seed=seed, load_descriptors=load_descriptors, positions=new_pos,
+                          spatial_neighbors=spatial_neighbors, spatial_max_distance=spatial_max_distance)
+    if len(old) == 0:
+        return within
+    total = len(new) + len(old)
+    exhaustive = method == "exhaustive" or (method == "auto" and total < exhaustive_threshold) or top_k >= len(old)
+    if exhaustive:
+        across = np.stack([np.repeat(new, len(old)), np.tile(old, len(new))], axis=1)
+    else:
+        if load_descriptors is None:
+            raise ValueError("retrieval pairs need descriptors (load_descriptors)")
+        across = _retrieval_across(new, old, load_descriptors, top_k, seed)
+        if method == "spatial":
+            if positions is None:
+                raise ValueError("spatial pairs need positions")
+            near = spatial_pairs(np.concatenate([new, old]), positions, spatial_neighbors, spatial_max_distance)
+            is_new = np.isin(near, new)
+            across = np.concatenate([across, near[is_new[:, 0] ^ is_new[:, 1]]])
+    return _unique_pairs(np.concatenate([within, across]))
+
+
+def _retrieval_across(new: np.ndarray, old: np.ndarray, load_descriptors: Callable[[int], np.ndarray], top_k: int,
+                      seed: int) -> np.ndarray:
+    """Each new image with its ``top_k`` most similar old images (VLAD dot products, ties:
+    the earlier old image), the vocabulary learned from the new images' descriptors."""
+    per_image = max(1, min(SAMPLES_PER_IMAGE, MAX_VOCABULARY_SAMPLES // len(new)))
+    sample = [vocabulary_sample(load_descriptors(int(i)), per_image, seed, int(i)) for i in new]
+    vocabulary = learn_vocabulary(np.concatenate(sample), VOCABULARY_WORDS, seed)
+    g_new = np.stack([vlad(load_descriptors(int(i)), vocabulary) for i in new])
+    g_old = np.stack([vlad(load_descriptors(int(i)), vocabulary) for i in old])
+    k = min(int(top_k), len(old))
+    order = np.argsort(-(g_new @ g_old.T), axis=1, kind="stable")[:, :k]
+    return np.stack([np.repeat(new, k), old[order.ravel()]], axis=1)

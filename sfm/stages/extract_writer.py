@@ -49,15 +49,22 @@ def _masks_record(masks: Path) -> str:
     return fingerprint([(p.relative_to(masks).as_posix(), p.stat().st_size, p.stat().st_mtime_ns) for p in files])
 
 
-def extract_ledger(workspace: Path, options: ExtractOptions) -> Ledger:
-    """The stage ledger, after dropping the database when the options that decide the features
-    or the cameras changed since the images in it were extracted (the intrinsics file counts by
-    its content, the mask folder by its files' names, sizes and times): every image is then extracted again, and every later stage runs again."""
+def extract_options_record(options: ExtractOptions) -> dict:
+    """What the ledger records of the extract options: the options, the intrinsics file by its
+    content, the mask folder by its files' names, sizes and times."""
     record = options_record(options)
     if options.intrinsics is not None and Path(options.intrinsics).is_file():
         record["intrinsics"] = fingerprint(Path(options.intrinsics).read_bytes())
     if options.masks is not None and Path(options.masks).is_dir():
         record["masks"] = _masks_record(Path(options.masks))
+    return record
+
+
+def extract_ledger(workspace: Path, options: ExtractOptions) -> Ledger:
+    """The stage ledger, after dropping the database when the options that decide the features
+    or the cameras changed since the images in it were extracted (:func:`extract_options_record`):
+    every image is then extracted again, and every later stage runs again."""
+    record = extract_options_record(options)
 
     def reset() -> None:
         for name in (DATABASE, DATABASE + "-wal", DATABASE + "-shm", SIDECAR):

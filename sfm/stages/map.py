@@ -103,7 +103,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
-    for k, res in _map_clusters(payloads, todo, options.for_model(direct), executor, recorder):
+    for k, res in map_clusters(payloads, todo, options.for_model(direct), executor, recorder):
         label = payloads.labels[k]
         models = res.value or []
         registrations = georegister_models(models, db_path, options) if direct else None
@@ -152,7 +152,7 @@ def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]
     return reconstruct_incremental(payload, options)
 
 
-def _map_clusters(payloads: ClusterPayloads, todo: list[int], options: MapperOptions, executor,
+def map_clusters(payloads: ClusterPayloads, todo: list[int], options: MapperOptions, executor,
                   recorder: Recorder) -> Iterator[tuple[int, TaskResult]]:
     """``(cluster index, result)`` of every cluster in ``todo`` as it finishes.  The largest go
     first, so the pool is not left waiting on one big straggler; each payload is read only when

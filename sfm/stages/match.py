@@ -29,7 +29,7 @@ from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.io.ledger import options_record, resume_or_restart
 from sfm.matching.options import MatchOptions
 from sfm.matching.pair_matcher import PairBatch, close_matchers, match_batch
-from sfm.matching.pairs import select_pairs
+from sfm.matching.pairs import extension_pairs, select_pairs
 from sfm.matching.verification import to_colmap_pixels
 
 logger = logging.getLogger(__name__)
@@ -150,6 +150,46 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
     ledger.finish("match", "")
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
+        num_pairs_processed=len(todo), num_verified=len(inliers),
+        median_inliers=float(np.median(inliers)) if len(inliers) else 0.0,
+        time_match_s=times[0], time_verify_s=times[1], time_total_s=time.perf_counter() - start,
+    )  # fmt: skip
+
+
+def match_extension(workspace: Path, new_names: list[str], options: MatchOptions = MatchOptions(),
+                    executor=None) -> MatchResult:
+    """Match and verify the pairs of images added to a finished model (``graphsfm extend``):
+    the pairs with at least one of ``new_names`` (``sfm.matching.pairs.extension_pairs``), so
+    the work grows with the new images.  Pairs already verified are skipped (resuming), and the
+    stored matches of the old images are never dropped, whatever the options."""
+    start = time.perf_counter()
+    executor = executor or LocalExecutor()
+    db_path = Path(workspace) / "database.db"
+    with Database(db_path) as db:
+        images = db.read_images()
+        names = {i: r.name for i, r in images.items()}
+        wanted = set(new_names)
+        ordered = sorted(images, key=lambda i: names[i])
+        usable = _usable_images(db, ordered, names)
+        new = [i for i in usable if names[i] in wanted]
+        old = [i for i in usable if names[i] not in wanted]
+        positions = None
+        if options.pairs == "spatial":
+            positions = _gps_positions(db, new + old)
+        pairs = extension_pairs(new, old, options.pairs, top_k=options.top_k, sequential=options.sequential,
+                                exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
+                                load_descriptors=db.read_descriptors, positions=positions,
+                                spatial_neighbors=options.spatial_neighbors,
+                                spatial_max_distance=options.spatial_max_distance)  # fmt: skip
+        done = db.pairs_with_geometry()
+        todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
+        logger.info("extension: %d new and %d old images, %d pairs selected, %d already verified (resumed), %d to match",
+                    len(new), len(old), len(pairs), len(pairs) - len(todo), len(todo))  # fmt: skip
+        camera_of = {i: r.camera_id for i, r in images.items()}
+        times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
+        _, _, inliers = db.verified_pairs(options.min_num_inliers)
+    return MatchResult(
+        num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=len(pairs) - len(todo),
         num_pairs_processed=len(todo), num_verified=len(inliers),
         median_inliers=float(np.median(inliers)) if len(inliers) else 0.0,
         time_match_s=times[0], time_verify_s=times[1], time_total_s=time.perf_counter() - start,

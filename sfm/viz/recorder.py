@@ -9,7 +9,8 @@ from the workspace path), so ``rerun WORK/*.rrd`` shows them as one recording.
 The ``stage`` sequence timeline has a fixed value per stage (:data:`STAGES`), so data logged by
 separate commands lines up.  Entity paths (the ``sfm.viz`` package docstring lists them):
 ``images/<name>``, ``graph/images``, ``graph/clusters``, ``clusters/C<k>/...``, ``merge/...``,
-``world/...``.
+``world/...``; ``graphsfm extend`` adds ``extend/E<k>`` (the new clusters' models in the
+model's frame) and ``graph/clusters/extend`` (their merge tree onto the model).
 A disabled recorder (``Recorder.disabled()``) accepts every call and does nothing.
 """
 
@@ -25,7 +26,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-STAGES = {"extract": 1, "match": 2, "cluster": 3, "map": 4, "merge": 5, "refine": 6}
+STAGES = {"extract": 1, "match": 2, "cluster": 3, "map": 4, "merge": 5, "refine": 6, "extend": 7}
 
 
 def cluster_color(k: int) -> tuple[int, int, int]:

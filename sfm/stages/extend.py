@@ -1,0 +1,425 @@
+"""``graphsfm extend``: new photos added to a finished model as one more cluster (or several).
+
+The new images go through the pipeline on their own, and the finished model ``WORK/sparse/0``
+is the anchor they are merged into (paper section 3.1 and 3.2, Alg. 1 and 2 with the anchor
+given).  Steps, each recorded in the ledger's ``extend`` entry (``WORK/stages.json``):
+
+1. ``extract``: the new images into the same database (``run_extract``, resuming per image).
+   Image names are paths relative to the folder given, as for ``reconstruct``; a name already
+   in the database that is not one of this extension's is refused (put the new photos in a
+   folder of their own names, e.g. a subfolder).
+2. ``match``: the pairs with at least one new image, new x old by retrieval among the old
+   images (``sfm.stages.match.match_extension``), so the matching grows with the new images.
+3. ``cluster``: the new images cut and expanded as Alg. 1 does, each cluster also given the
+   images of the model it overlaps most (``graph.extension``) -> ``WORK/extend/clusters.json``.
+4. ``map``: local SfM of each new cluster -> ``WORK/extend/clusters/E<k>/<m>`` (recorded per
+   cluster, so a killed run keeps the clusters that were done).
+5. ``merge``: the model and the new local models as one cluster graph, the model the fixed
+   anchor (``sfm.merge.extension``); re-triangulation and a BA of the new images' region (the
+   model's images far from it held; ``full_ba``: one global BA) -> ``WORK/extend/result/N``.
+6. ``commit``: ``WORK/sparse`` replaced by the result by renaming folders (the ledger says a
+   commit is under way; a rerun after a kill completes it), so ``WORK/sparse`` is always the
+   old model or the new one.
+
+``WORK/sparse/0`` stays the model, its images keep their names and ids; it is untouched (the
+same bytes) when no new cluster could be aligned to it.  New images that see nothing of it form
+models of their own, after the workspace's other models, and the report says so.  Without an
+image folder, the new images are the database's images that no model of the workspace
+registers, their features and matches already in the database (a database written by another
+tool, or by ``synth``): extract and match are skipped.
+
+The same input, options and seed give the same files; a rerun of a finished extension with
+the same images and options is skipped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from graph.extension import cluster_extension
+from graph.image_graph import build_image_graph
+from sfm.core.model import Reconstruction
+from sfm.errors import InputError
+from sfm.execution.local import LocalExecutor
+from sfm.execution.options import make_executor
+from sfm.execution.process_pool import start_pool_server
+from sfm.io.colmap_model import read_model, write_model
+from sfm.io.database import Database
+from sfm.io.image_files import find_images
+from sfm.io.ledger import Ledger, changes, fingerprint, options_record
+from sfm.io.workspace import (DATABASE, RECORDING, read_georegistration, read_json, update_report,
+                               write_georegistration, write_json_atomic)
+from sfm.merge.alignment import anchor_from_model, merged_poses
+from sfm.merge.cluster_graph import LocalModel
+from sfm.merge.extension import ANCHOR, extended_poses, plan_extension, refine_extension
+from sfm.merge.options import ExtendOptions
+from sfm.merge.refinement import refine_with_poses
+from sfm.stages.extract import run_extract
+from sfm.stages.extract_writer import extract_options_record
+from sfm.stages.georegister import georegister_models
+from sfm.stages.map import map_clusters, write_models
+from sfm.stages.match import match_extension
+from sfm.stages.payloads import ClusterPayloads
+from sfm.stages.reconstruct import ReconstructOptions
+from sfm.viz.recorder import Recorder, log_model
+
+log = logging.getLogger(__name__)
+
+EXTEND = "extend"  # the workspace folder of an extension in progress, and its ledger entry
+
+
+@dataclass(frozen=True)
+class ExtendRunOptions(ReconstructOptions):
+    """The options of every stage the extension runs again on the new images, and its own."""
+
+    extend: ExtendOptions = field(default_factory=ExtendOptions)
+
+
+def _numbered(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted((d for d in folder.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
+
+
+def _folder_fingerprint(folder: Path) -> str:
+    """SHA-256 of every file under ``folder`` (names and bytes)."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
+    return fingerprint(*[x for p in files for x in (p.relative_to(folder).as_posix(), p.read_bytes())])
+
+
+class _Extension:
+    """One extension of ``WORK/sparse`` (module docstring): the ledger entry and the folders."""
+
+    def __init__(self, workspace: Path, options: ExtendRunOptions, executor, recorder: Recorder) -> None:
+        self.ws, self.options, self.executor, self.recorder = workspace, options, executor, recorder
+        self.sparse, self.dir = workspace / "sparse", workspace / EXTEND
+        self.result, self.old = self.dir / "result", self.dir / "sparse.old"
+        self.ledger = Ledger(workspace)
+        o = options
+        self.opts = {"extract": extract_options_record(o.extract), "match": options_record(o.match),
+                     "cluster": options_record(o.cluster), "mapper": options_record(o.mapper),
+                     "merge": options_record(o.merge), "extend": options_record(o.extend)}
+        self.times: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ ledger
+    @property
+    def rec(self) -> dict:
+        return self.ledger.data[EXTEND]
+
+    def step_done(self, step: str) -> bool:
+        return bool(self.rec["steps"].get(step))
+
+    def mark(self, step: str, value=True) -> None:
+        self.rec["steps"][step] = value
+        self.ledger.save()
+
+    # ------------------------------------------------------------------ commit
+    def complete_commit(self) -> None:
+        """Finish a commit that a kill interrupted (module docstring, step 6): the renames
+        still to do, then the ledger."""
+        rec = self.ledger.record(EXTEND)
+        if not rec or rec.get("done") or not rec.get("steps", {}).get("commit"):
+            return
+        log.info("extend: completing the replacement of %s that an earlier run started", self.sparse)
+        self._swap()
+
+    def _swap(self) -> None:
+        if self.result.is_dir():
+            if self.sparse.exists():
+                shutil.rmtree(self.old, ignore_errors=True)
+                self.sparse.rename(self.old)
+            self.result.rename(self.sparse)
+        shutil.rmtree(self.old, ignore_errors=True)
+        self.ledger.finish(EXTEND, _folder_fingerprint(self.sparse))
+
+    def commit(self) -> None:
+        self.mark("commit")
+        self._swap()
+
+
+def run_extend(workspace: Path, images: Path | None, options: ExtendRunOptions = ExtendRunOptions(),
+               executor=None, recorder: Recorder | None = None) -> dict:
+    """Add the images of ``images`` (None: the database's images no model registers) to the
+    model ``WORK/sparse/0`` (module docstring; paper sections 3.1-3.2, Alg. 1 and 2 with the
+    model as the given anchor); returns the extension's summary (also in ``report.json``)."""
+    workspace = Path(workspace)
+    executor = executor or LocalExecutor()
+    recorder = recorder or Recorder.disabled()
+    ext = _Extension(workspace, options, executor, recorder)
+    ext.complete_commit()
+    if not (ext.sparse / "0" / "images.bin").exists():
+        raise InputError(f"no model at {ext.sparse / '0'}: run `graphsfm reconstruct` first")
+    if not (workspace / DATABASE).is_file():
+        raise InputError(f"no database at {workspace / DATABASE}")
+    names = None
+    if images is not None:
+        images = Path(images)
+        if not images.is_dir():
+            raise InputError(f"image folder not found: {images}")
+        names = find_images(images)
+        if not names:
+            raise InputError(f"no images found in {images}")
+    identity = {"images": None if images is None else str(images.resolve()), "names": names}
+    old_fp = _folder_fingerprint(ext.sparse)
+    rec = ext.ledger.record(EXTEND)
+    if (rec and rec.get("done") and rec.get("output") == old_fp and rec.get("options") == ext.opts
+            and rec.get("identity") == identity):
+        log.info("extend: %s already holds this extension (same images, same options): skipped", ext.sparse)
+        return rec["result"]
+    input_fp = fingerprint(old_fp, identity)
+    if rec and not rec.get("done") and rec.get("input") == input_fp and rec.get("options") == ext.opts:
+        log.info("extend: resuming the extension an earlier run started (steps done: %s)",
+                 ", ".join(s for s, v in rec.get("steps", {}).items() if v) or "none")
+    else:
+        if rec and not rec.get("done"):
+            log.info("extend: starting afresh: %s", ext.ledger.why_stale(EXTEND, ext.opts, input_fp))
+        new = _new_images(ext, names, rec)
+        shutil.rmtree(ext.dir, ignore_errors=True)
+        ext.ledger.start(EXTEND, ext.opts, input_fp, keep={"identity": identity, "new_images": new, "steps": {},
+                                                           "clusters": {}})
+    return _run_steps(ext, images)
+
+
+def _new_images(ext: _Extension, names: list[str] | None, rec: dict | None) -> list[str]:
+    """The names of the images to add: those of the folder (refusing a name the database holds
+    for another image), or the database's images that no model of the workspace registers."""
+    with Database(ext.ws / DATABASE, readonly=True) as db:
+        in_db = {r.name for r in db.read_images().values()}
+    if names is None:
+        registered = {im.name for folder in _numbered(ext.sparse) for im in read_model(folder).images.values()}
+        new = sorted(in_db - registered)
+        if not new:
+            raise InputError("every image of the database is in a model: nothing to add (give --images)")
+        return new
+    ours = set(rec.get("new_images", [])) if rec and not rec.get("done") else set()
+    taken = sorted(n for n in names if n in in_db and n not in ours)
+    if taken:
+        raise InputError(f"{len(taken)} image name(s) of the new folder are already in the workspace "
+                         f"({', '.join(taken[:3])}{' ...' if len(taken) > 3 else ''}): names are paths relative to "
+                         "the image folder, so give new photos names of their own (e.g. put them in a subfolder)")
+    extract_rec = ext.ledger.record("extract")
+    diff = changes(extract_rec.get("options") if extract_rec else None, ext.opts["extract"])
+    if diff:
+        raise InputError("the new images must be extracted with the options the workspace's images were "
+                         f"extracted with; these differ: {'; '.join(diff)}")
+    return list(names)
+
+
+def _run_steps(ext: _Extension, images: Path | None) -> dict:
+    o, ws = ext.options, ext.ws
+    new_names: list[str] = list(ext.rec["new_images"])
+    t0 = time.perf_counter()
+    if images is not None and not ext.step_done("extract"):
+        result = run_extract(images, ws, o.extract, ext.executor)
+        ext.mark("extract", [n for n, _ in result.bad_files])
+    bad = set(ext.rec["steps"].get("extract") or [])
+    new_names = [n for n in new_names if n not in bad]
+    t1 = time.perf_counter()
+    if images is not None and not ext.step_done("match"):
+        match_extension(ws, new_names, o.match, ext.executor)
+        ext.mark("match")
+    t2 = time.perf_counter()
+    ext.times.update({"T_feat": t1 - t0, "T_match": t2 - t1})
+
+    anchor = read_model(ext.sparse / "0")
+    clusters = _cluster(ext, anchor, new_names)
+    t3 = time.perf_counter()
+    models = _map(ext, clusters)
+    t4 = time.perf_counter()
+    ext.times.update({"T_GC": t3 - t2, "T_SfM": t4 - t3})
+    if not ext.step_done("result"):
+        summary = _merge(ext, anchor, models, new_names, clusters)
+        ext.rec["result"] = summary
+        ext.mark("result", True)
+    summary = ext.rec["result"]
+    del anchor, models
+    fields = {k: summary[k] for k in ("num_models", "registered", "points", "mean_track_length",
+                                     "mean_reprojection_error", "models") if k in summary}
+    fields["extension"] = summary
+    fields["warnings"] = summary["warnings"]
+    for w in summary["warnings"]:
+        log.warning("%s", w)
+    update_report(ws, fields, {f"extend_{k}": v for k, v in ext.times.items()})
+    ext.commit()
+    log.info("extend: %d new images, %d registered into sparse/0 (%d registered in all), %d model(s)",
+             summary["new_images"], summary["new_registered_in_model"], summary["registered"], summary["num_models"])
+    return summary
+
+
+def _cluster(ext: _Extension, anchor: Reconstruction, new_names: list[str]) -> dict:
+    """Step 3: the new images' clusters (``graph.extension``) -> ``WORK/extend/clusters.json``."""
+    path = ext.dir / "clusters.json"
+    if ext.step_done("cluster") and path.exists():
+        return read_json(path)
+    o = ext.options.cluster
+    with Database(ext.ws / DATABASE, readonly=True) as db:
+        images = db.read_images()
+        id1, id2, weights = db.verified_pairs(min_inliers=o.min_inliers)
+    ids = np.array(sorted(images), dtype=np.int64)
+    names = [images[i].name for i in ids]
+    node = {n: k for k, n in enumerate(names)}
+    pos = {int(i): k for k, i in enumerate(ids)}
+    graph = build_image_graph(len(ids), [pos[int(i)] for i in id1], [pos[int(j)] for j in id2],
+                              weights.astype(np.float64))
+    anchor_nodes = np.array(sorted(node[im.name] for im in anchor.images.values()), dtype=np.int64)
+    new_nodes = np.array(sorted(node[n] for n in new_names if n in node), dtype=np.int64)
+    res = cluster_extension(graph, new_nodes, anchor_nodes, o.max_cluster_size, o.completeness, o.max_overlap, o.seed)
+    out = {
+        "clusters": [{"id": f"E{k}", "core": [names[i] for i in core], "members": [names[i] for i in members],
+                      "anchor_overlap": [names[i] for i in overlap]}
+                     for k, (core, members, overlap) in enumerate(zip(res.cores, res.clusters, res.anchor_overlap))],
+        "isolated_images": [names[i] for i in res.isolated],
+        "options": dataclasses.asdict(o),
+    }
+    ext.dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, out)
+    ext.mark("cluster", fingerprint(out["clusters"]))
+    return out
+
+
+def _map(ext: _Extension, clusters: dict) -> list[LocalModel]:
+    """Step 4: local SfM of every new cluster -> ``WORK/extend/clusters/E<k>/<m>``, each cluster
+    recorded as it finishes (a rerun keeps them)."""
+    o = ext.options.mapper
+    members = [c["members"] for c in clusters["clusters"]]
+    labels = [c["id"] for c in clusters["clusters"]]
+    root = ext.dir / "clusters"
+    done = ext.rec["clusters"]
+    if members:
+        payloads = ClusterPayloads(ext.ws / DATABASE, members, fixed_intrinsics=not o.refine_given_intrinsics,
+                                   min_inliers=o.min_num_matches, labels=labels)
+        todo = [k for k, label in enumerate(labels) if label not in done]
+        ext.recorder.stage("extend")
+        for k, res in map_clusters(payloads, todo, o.for_model(False), ext.executor, ext.recorder):
+            written = write_models(res.value or [], root / labels[k])
+            if res.error is not None:
+                log.warning("new cluster %s failed: %s", labels[k], res.error)
+            done[labels[k]] = {"images": payloads.sizes[k], "models": len(written), "error": res.error}
+            ext.ledger.save()
+    models = []
+    for label in labels:
+        for m in range(done[label]["models"]):
+            models.append(LocalModel(f"{label}/{m}", read_model(root / label / str(m))))
+    return models
+
+
+def _merge(ext: _Extension, anchor: Reconstruction, models: list[LocalModel], new_names: list[str],
+           clusters: dict) -> dict:
+    """Step 5: the new local models merged into the model as the fixed anchor, refined, and
+    written with the workspace's other models to ``WORK/extend/result/N``."""
+    t0 = time.perf_counter()
+    o = ext.options
+    nodes = [LocalModel("model", anchor)] + models
+    edges, plans = plan_extension(nodes, o.merge, seed=o.mapper.seed)
+    main = plans[0]
+    ext.recorder.stage("extend")
+    ext.recorder.log_cluster_graph([len(n.model.images) for n in nodes], [(a, b) for a, b, _ in main.edges],
+                                   anchor=ANCHOR, entity="graph/clusters/extend")
+    new_set = set(new_names)
+    components = []  # (plan, poses, params) of the other plans: models of their own
+    for plan in plans[1:]:
+        sims = anchor_from_model(plan, edges)
+        components.append((plan, *merged_poses(nodes, plan, sims)))
+    t_merge = time.perf_counter() - t0
+
+    db = ext.ws / DATABASE
+    mapper = o.mapper
+    merged_in = [n for n in main.clusters if n != ANCHOR]
+    extended = None
+    if merged_in:
+        poses, params, sims = extended_poses(nodes, main, edges)
+        for n in merged_in if ext.recorder.enabled else ():
+            moved = nodes[n].model.copy()
+            moved.transform(sims[n])
+            log_model(ext.recorder, f"extend/{nodes[n].label.replace('/', '_')}", moved)
+        payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
+                                   min_inliers=mapper.min_num_matches, labels=["extended"])
+        extended = refine_extension(payloads[0], mapper, poses, params, new_set, full_ba=o.extend.full_ba)
+    others = []
+    for plan, poses, params in components:
+        payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
+                                   min_inliers=mapper.min_num_matches, labels=[f"N{plan.anchor}"])
+        model = refine_with_poses(payloads[0], mapper, poses, params)
+        if len(model.images) >= mapper.smallest_model(payloads.sizes[0]):
+            others.append(model)
+    others.sort(key=lambda m: -len(m.images))
+    t_ba = time.perf_counter() - t0 - t_merge
+
+    # The result: sparse/0 (extended, or the same files), the workspace's other models as they
+    # were, then the new images' models of their own.
+    shutil.rmtree(ext.result, ignore_errors=True)
+    ext.result.mkdir(parents=True)
+    old_folders = _numbered(ext.sparse)
+    if extended is None:
+        shutil.copytree(old_folders[0], ext.result / "0")
+    else:
+        write_models([extended], ext.result)
+        registration = read_georegistration(old_folders[0])  # the model's frame did not move
+        if registration is not None:
+            shutil.copy2(old_folders[0] / "georegistration.json", ext.result / "0" / "georegistration.json")
+    for k, folder in enumerate(old_folders[1:], start=1):
+        shutil.copytree(folder, ext.result / str(k))
+    registrations = georegister_models(others, db, mapper)
+    for k, (model, registration) in enumerate(zip(others, registrations), start=len(old_folders)):
+        write_model(model, ext.result / str(k))
+        write_georegistration(ext.result / str(k), registration)
+    if extended is not None:
+        log_model(ext.recorder, "world", extended)
+
+    final0 = extended if extended is not None else anchor
+    registered_new = sorted(im.name for im in final0.images.values() if im.name in new_set)
+    own_new = sorted(im.name for m in others for im in m.images.values() if im.name in new_set)
+    warnings = []
+    if others:
+        first = len(old_folders)
+        where = ", ".join(f"sparse/{first + k} ({len(m.images)} images)" for k, m in enumerate(others))
+        warnings.append(f"{len(own_new)} new image(s) share nothing that aligns with sparse/0 and form "
+                        f"{len(others)} model(s) of their own: {where}")
+    left = len(new_names) - len(registered_new) - len(own_new)
+    if left:
+        warnings.append(f"{left} new image(s) are in no model")
+    summary = {
+        "new_images": len(new_names),
+        "new_clusters": len(clusters["clusters"]),
+        "new_local_models": len(models),
+        "merged_into_model": len(merged_in),
+        "new_registered_in_model": len(registered_new),
+        "new_registered_own_models": len(own_new),
+        "own_models": len(others),
+        "num_models": len(old_folders) + len(others),
+        "full_ba": o.extend.full_ba,
+        **{k: v for k, v in final0.summary().items()},
+        "time_merge_s": round(t_merge, 3), "time_ba_s": round(t_ba, 3),
+        "warnings": warnings,
+    }
+    ext.times.update({"T_merge": t_merge, "T_BA": t_ba})
+    write_json_atomic(ext.dir / "merge.json", {
+        "nodes": [{"id": k, "label": n.label, "images": len(n.model.images)} for k, n in enumerate(nodes)],
+        "edges": [{"a": u, "b": v, "msd": e["msd"], "common_cameras": e["common_cameras"], "used": e["used"]}
+                  for (u, v), e in sorted(edges.items())],
+        "components": [{"anchor": p.anchor, "clusters": list(p.clusters), "minst": [list(e) for e in p.edges]}
+                       for p in plans],
+    })
+    if extended is None and not others:
+        log.warning("extend: no new image could be added to any model")
+    return summary
+
+
+def extend(workspace: Path, images: Path | None, options: ExtendRunOptions) -> dict:
+    """The whole extension as the command line starts it: the executor and the recording
+    (``WORK/recording-extend.rrd``) opened, :func:`run_extend`, both closed."""
+    workspace = Path(workspace)
+    if options.execution.executor == "local":
+        start_pool_server()
+    rec = options.recording
+    recorder = (Recorder(workspace / RECORDING.replace(".rrd", "-extend.rrd"), workspace, spawn=rec.spawn)
+                if rec.recording else Recorder.disabled())
+    with recorder, make_executor(options.execution) as executor:
+        return run_extend(workspace, images, options, executor, recorder)
