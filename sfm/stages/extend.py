@@ -218,8 +218,9 @@ def _run_steps(ext: _Extension, images: Path | None) -> dict:
     t0 = time.perf_counter()
     if images is not None and not ext.step_done("extract"):
         result = run_extract(images, ws, o.extract, ext.executor)
-        ext.mark("extract", [n for n, _ in result.bad_files])
-    bad = set(ext.rec["steps"].get("extract") or [])
+        ext.rec["bad_files"] = [n for n, _ in result.bad_files]
+        ext.mark("extract")
+    bad = set(ext.rec.get("bad_files") or [])
     new_names = [n for n in new_names if n not in bad]
     t1 = time.perf_counter()
     if images is not None and not ext.step_done("match"):
