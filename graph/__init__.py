@@ -34,6 +34,8 @@ Modules, in pipeline order:
   (section 3.1.1, Alg. 1, lines 1-2).
 - ``graph.expansion``: ``expand_clusters``: MaxST-guided subgraph expansion into overlapping
   clusters (section 3.1.2, Alg. 1, lines 3-12).
+- ``graph.extension``: ``cluster_extension``: images added to a finished reconstruction
+  clustered by Alg. 1, each cluster with overlap into the given anchor cluster.
 - ``graph.merge_plan``: ``plan_merges``: the MinST of the cluster graph (section 3.2.2,
   Eq. 7-9; Alg. 2, line 2) and the minimum-height-tree anchor (section 3.2.3, Alg. 2,
   lines 3-12).

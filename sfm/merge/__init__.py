@@ -39,6 +39,9 @@ Modules, in reading order:
 - ``sfm.merge.cluster_graph``: the cluster graph's edges (similarity and MSD) and the merge plan.
 - ``sfm.merge.alignment``: every model in its anchor's frame, and the merged poses and cameras.
 - ``sfm.merge.refinement``: re-triangulation and global BA of the merged poses.
+- ``sfm.merge.extension``: new images' local models merged into a finished model held as the
+  anchor (Alg. 2 with the anchor given), and the BA of the new part (``graphsfm extend``).
+- ``sfm.merge.options`` also holds ``ExtendOptions`` (``full_ba``).
 
 Paper: section 3.2 (3.2.1 Eq. 1-6, 3.2.2 Eq. 7-11, 3.2.3), Algorithm 2, Figures 1 and 3.
 """

@@ -39,6 +39,9 @@ Modules, in reading order:
 - ``sfm.stages.payloads``: one cluster's payload read from the database, when it is needed.
 - ``sfm.stages.map``: ``run_map``: local incremental SfM of every cluster, in parallel.
 - ``sfm.stages.merge``: ``run_merge``: local models -> merged, refined models, ``merge.json``.
+- ``sfm.stages.extend``: ``run_extend``: new photos added to the finished ``sparse/0`` as new
+  clusters merged into it (extract, match, cluster, map, merge of the new part; its own ledger
+  entry, ``WORK/extend/``).
 - ``sfm.stages.synth``: ``run_synth``: a synthetic scene as a new workspace.
 - ``sfm.stages.demo``: ``run_demo``: the rendered scene reconstructed and evaluated.
 
