@@ -18,11 +18,16 @@ gets overlap with the anchor, so its local model can be aligned to the anchor di
 New images with no image edge at all are isolated: nothing can register them.  A core with no
 edge to the anchor still becomes a cluster; its model cannot be aligned to the anchor and
 stays a model of its own (new photos of another scene).
+
+A finished reconstruction may be in several models (``other_nodes``: the workspace's models
+besides the anchor): each is one more given cluster, and the cores get overlap with each the
+same way, so that new images joining two models of the old scene let the merge join them.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,8 +49,8 @@ class ExtensionClusters:
         cores: the new images of each cluster (sorted int64 arrays, disjoint).
         clusters: each cluster's members: its core, the new images the expansion added, and its
             anchor overlap (sorted int64 arrays).
-        anchor_overlap: the anchor images of each cluster (sorted int64 arrays; empty when the
-            core has no image edge to the anchor).
+        anchor_overlap: the given clusters' images (the anchor's and the other given clusters')
+            of each cluster (sorted int64 arrays; empty when the core has no image edge to any).
         isolated: new images with no image edge (sorted int64 array).
     """
 
@@ -63,6 +68,7 @@ def cluster_extension(
     completeness_ratio: float = 0.5,
     max_overlap: int = 50,
     seed: int = 0,
+    other_nodes: Sequence[np.ndarray] = (),
 ) -> ExtensionClusters:
     """Cluster ``new_nodes`` with overlap among themselves and with the anchor cluster
     ``anchor_nodes`` (module docstring; paper section 3.1, Alg. 1, lines 1-12, the anchor being
@@ -74,11 +80,14 @@ def cluster_extension(
         anchor_nodes: the images of the existing reconstruction (disjoint from ``new_nodes``).
         max_cluster_size, completeness_ratio, max_overlap, seed: ``S_max``, ``C``, ``O_max``
             and the seed of Alg. 1.
+        other_nodes: the images of other given clusters (the reconstruction's other models),
+            disjoint from the rest; ``anchor_overlap`` also holds the overlap with them.
     """
     new = np.unique(np.asarray(new_nodes, dtype=np.int64))
-    anchor = np.unique(np.asarray(anchor_nodes, dtype=np.int64))
-    if np.intersect1d(new, anchor).size:
-        raise ValueError("new_nodes and anchor_nodes must be disjoint")
+    given = [np.unique(np.asarray(g, dtype=np.int64)) for g in (anchor_nodes, *other_nodes)]
+    anchor = np.concatenate(given)
+    if np.unique(anchor).size != anchor.size or np.intersect1d(new, anchor).size:
+        raise ValueError("new_nodes, anchor_nodes and other_nodes must be disjoint")
     empty = np.zeros(0, np.int64)
     if new.size == 0:
         return ExtensionClusters((), (), (), empty)
@@ -108,19 +117,21 @@ def cluster_extension(
     cores = tuple(new[c] for c in expansion.cores)
     members = [set(new[c].tolist()) for c in expansion.clusters]
 
-    # Alg. 1, lines 6-9 along every edge between a core and the anchor cluster.
-    k_anchor = len(cores)
+    # Alg. 1, lines 6-9 along every edge between a core and a given cluster.
     labels = np.full(graph.num_nodes, -1, dtype=np.int64)
     for k, core in enumerate(cores):
         labels[core] = k
-    labels[anchor] = k_anchor
+    for g, nodes in enumerate(given):
+        labels[nodes] = len(cores) + g
     lost = lost_edges_by_pair(graph, labels)
     overlap = []
     for k in range(len(cores)):
-        ends = lost.get((k, k_anchor), (np.zeros((0, 2), np.int64), None))[0][:max_overlap]
-        gained = np.unique(ends[:, 1]) if ends.size else empty
+        gained = empty
+        for g in range(len(given)):
+            ends = lost.get((k, len(cores) + g), (np.zeros((0, 2), np.int64), None))[0][:max_overlap]
+            gained = np.union1d(gained, ends[:, 1]) if ends.size else gained
         members[k].update(gained.tolist())
-        overlap.append(gained)
+        overlap.append(gained.astype(np.int64))
     clusters = tuple(np.array(sorted(m), dtype=np.int64) for m in members)
     logger.info("extension: %d new images -> %d clusters (cores %s), anchor overlap %s, %d isolated",
                 new.size, len(cores), [c.size for c in cores], [o.size for o in overlap], isolated.size)

@@ -229,18 +229,18 @@ def _run_steps(ext: _Extension, images: Path | None) -> dict:
     t2 = time.perf_counter()
     ext.times.update({"T_feat": t1 - t0, "T_match": t2 - t1})
 
-    anchor = read_model(ext.sparse / "0")
-    clusters = _cluster(ext, anchor, new_names)
+    olds = [read_model(folder) for folder in _numbered(ext.sparse)]  # sparse/0, the anchor, first
+    clusters = _cluster(ext, olds, new_names)
     t3 = time.perf_counter()
     models = _map(ext, clusters)
     t4 = time.perf_counter()
     ext.times.update({"T_GC": t3 - t2, "T_SfM": t4 - t3})
     if not ext.step_done("result"):
-        summary = _merge(ext, anchor, models, new_names, clusters)
+        summary = _merge(ext, olds, models, new_names, clusters)
         ext.rec["result"] = summary
         ext.mark("result", True)
     summary = ext.rec["result"]
-    del anchor, models
+    del olds, models
     fields = {k: summary[k] for k in ("num_models", "registered", "points", "mean_track_length",
                                      "mean_reprojection_error", "models") if k in summary}
     fields["extension"] = summary
@@ -254,8 +254,9 @@ def _run_steps(ext: _Extension, images: Path | None) -> dict:
     return summary
 
 
-def _cluster(ext: _Extension, anchor: Reconstruction, new_names: list[str]) -> dict:
-    """Step 3: the new images' clusters (``graph.extension``) -> ``WORK/extend/clusters.json``."""
+def _cluster(ext: _Extension, olds: list[Reconstruction], new_names: list[str]) -> dict:
+    """Step 3: the new images' clusters (``graph.extension``), with overlap into ``sparse/0`` and
+    the workspace's other models -> ``WORK/extend/clusters.json``."""
     path = ext.dir / "clusters.json"
     if ext.step_done("cluster") and path.exists():
         return read_json(path)
@@ -269,9 +270,10 @@ def _cluster(ext: _Extension, anchor: Reconstruction, new_names: list[str]) -> d
     pos = {int(i): k for k, i in enumerate(ids)}
     graph = build_image_graph(len(ids), [pos[int(i)] for i in id1], [pos[int(j)] for j in id2],
                               weights.astype(np.float64))
-    anchor_nodes = np.array(sorted(node[im.name] for im in anchor.images.values()), dtype=np.int64)
+    given = [np.array(sorted(node[im.name] for im in m.images.values()), dtype=np.int64) for m in olds]
     new_nodes = np.array(sorted(node[n] for n in new_names if n in node), dtype=np.int64)
-    res = cluster_extension(graph, new_nodes, anchor_nodes, o.max_cluster_size, o.completeness, o.max_overlap, o.seed)
+    res = cluster_extension(graph, new_nodes, given[0], o.max_cluster_size, o.completeness, o.max_overlap, o.seed,
+                            other_nodes=given[1:])
     out = {
         "clusters": [{"id": f"E{k}", "core": [names[i] for i in core], "members": [names[i] for i in members],
                       "anchor_overlap": [names[i] for i in overlap]}
@@ -311,23 +313,27 @@ def _map(ext: _Extension, clusters: dict) -> list[LocalModel]:
     return models
 
 
-def _merge(ext: _Extension, anchor: Reconstruction, models: list[LocalModel], new_names: list[str],
+def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel], new_names: list[str],
            clusters: dict) -> dict:
-    """Step 5: the new local models merged into the model as the fixed anchor, refined, and
-    written with the workspace's other models to ``WORK/extend/result/N``."""
+    """Step 5: the new local models merged into ``sparse/0`` as the fixed anchor (with the
+    workspace's other models that they join to it), refined, and written with the remaining
+    models to ``WORK/extend/result/N``."""
     t0 = time.perf_counter()
     o = ext.options
-    nodes = [LocalModel("model", anchor)] + models
+    nodes = [LocalModel(f"sparse/{k}", m) for k, m in enumerate(olds)] + models
+    num_old = len(olds)
     edges, plans = plan_extension(nodes, o.merge, seed=o.mapper.seed)
     main = plans[0]
     ext.recorder.stage("extend")
     ext.recorder.log_cluster_graph([len(n.model.images) for n in nodes], [(a, b) for a, b, _ in main.edges],
                                    anchor=ANCHOR, entity="graph/clusters/extend")
     new_set = set(new_names)
-    components = []  # (plan, poses, params) of the other plans: models of their own
+    untouched = [p.anchor for p in plans[1:] if len(p.clusters) == 1 and p.anchor < num_old]
+    components = []  # (plan, poses, params) of the other plans with a new model: models of their own
     for plan in plans[1:]:
-        sims = anchor_from_model(plan, edges)
-        components.append((plan, *merged_poses(nodes, plan, sims)))
+        if not (len(plan.clusters) == 1 and plan.anchor < num_old):
+            sims = anchor_from_model(plan, edges)
+            components.append((plan, *merged_poses(nodes, plan, sims)))
     t_merge = time.perf_counter() - t0
 
     db = ext.ws / DATABASE
@@ -340,21 +346,24 @@ def _merge(ext: _Extension, anchor: Reconstruction, models: list[LocalModel], ne
             moved = nodes[n].model.copy()
             moved.transform(sims[n])
             log_model(ext.recorder, f"extend/{nodes[n].label.replace('/', '_')}", moved)
+        anchor_names = {im.name for im in olds[0].images.values()}
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
                                    min_inliers=mapper.min_num_matches, labels=["extended"])
-        extended = refine_extension(payloads[0], mapper, poses, params, new_set, full_ba=o.extend.full_ba)
-    others = []
+        extended = refine_extension(payloads[0], mapper, poses, params, set(poses) - anchor_names,
+                                    full_ba=o.extend.full_ba)
+    others = []  # (model, holds an old model's images)
     for plan, poses, params in components:
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
                                    min_inliers=mapper.min_num_matches, labels=[f"N{plan.anchor}"])
         model = refine_with_poses(payloads[0], mapper, poses, params)
         if len(model.images) >= mapper.smallest_model(payloads.sizes[0]):
-            others.append(model)
-    others.sort(key=lambda m: -len(m.images))
+            others.append((model, any(n < num_old for n in plan.clusters)))
+    others.sort(key=lambda x: (not x[1], -len(x[0].images)))
     t_ba = time.perf_counter() - t0 - t_merge
 
-    # The result: sparse/0 (extended, or the same files), the workspace's other models as they
-    # were, then the new images' models of their own.
+    # The result: sparse/0 (extended, or the same files), the workspace's other models that
+    # nothing joined, as they were, the other models that new images extended, then the new
+    # images' models of their own.
     shutil.rmtree(ext.result, ignore_errors=True)
     ext.result.mkdir(parents=True)
     old_folders = _numbered(ext.sparse)
@@ -365,24 +374,29 @@ def _merge(ext: _Extension, anchor: Reconstruction, models: list[LocalModel], ne
         registration = read_georegistration(old_folders[0])  # the model's frame did not move
         if registration is not None:
             shutil.copy2(old_folders[0] / "georegistration.json", ext.result / "0" / "georegistration.json")
-    for k, folder in enumerate(old_folders[1:], start=1):
-        shutil.copytree(folder, ext.result / str(k))
-    registrations = georegister_models(others, db, mapper)
-    for k, (model, registration) in enumerate(zip(others, registrations), start=len(old_folders)):
+    for k, n in enumerate([n for n in untouched if n != ANCHOR], start=1):
+        shutil.copytree(old_folders[n], ext.result / str(k))
+    first_own = 1 + len(untouched)
+    registrations = georegister_models([m for m, _ in others], db, mapper)
+    for k, ((model, _), registration) in enumerate(zip(others, registrations), start=first_own):
         write_model(model, ext.result / str(k))
         write_georegistration(ext.result / str(k), registration)
     if extended is not None:
         log_model(ext.recorder, "world", extended)
+    num_models = first_own + len(others)
+    anchor = olds[0]
+    own = [(k, m) for k, (m, has_old) in enumerate(others, start=first_own) if not has_old]
+    others = [m for m, _ in others]
 
     final0 = extended if extended is not None else anchor
     registered_new = sorted(im.name for im in final0.images.values() if im.name in new_set)
     own_new = sorted(im.name for m in others for im in m.images.values() if im.name in new_set)
     warnings = []
-    if others:
-        first = len(old_folders)
-        where = ", ".join(f"sparse/{first + k} ({len(m.images)} images)" for k, m in enumerate(others))
-        warnings.append(f"{len(own_new)} new image(s) share nothing that aligns with sparse/0 and form "
-                        f"{len(others)} model(s) of their own: {where}")
+    if own:
+        where = ", ".join(f"sparse/{k} ({len(m.images)} images)" for k, m in own)
+        num = sum(1 for _, m in own for im in m.images.values() if im.name in new_set)
+        warnings.append(f"{num} new image(s) share nothing that aligns with sparse/0 and form "
+                        f"{len(own)} model(s) of their own: {where}")
     left = len(new_names) - len(registered_new) - len(own_new)
     if left:
         warnings.append(f"{left} new image(s) are in no model")
@@ -393,8 +407,9 @@ def _merge(ext: _Extension, anchor: Reconstruction, models: list[LocalModel], ne
         "merged_into_model": len(merged_in),
         "new_registered_in_model": len(registered_new),
         "new_registered_own_models": len(own_new),
-        "own_models": len(others),
-        "num_models": len(old_folders) + len(others),
+        "old_models_joined": sum(1 for n in main.clusters if 0 < n < num_old),
+        "own_models": len(own),
+        "num_models": num_models,
         "full_ba": o.extend.full_ba,
         **{k: v for k, v in final0.summary().items()},
         "time_merge_s": round(t_merge, 3), "time_ba_s": round(t_ba, 3),
