@@ -7,10 +7,16 @@ place, so an interrupted run never leaves a half-written file behind.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
+
+from sfm.errors import DamagedFileError, WorkspaceBusyError
+
+log = logging.getLogger(__name__)
 
 DATABASE = "database.db"
 CLUSTERS = "clusters.json"
@@ -18,6 +24,7 @@ MERGE = "merge.json"
 REPORT = "report.json"
 RECORDING = "recording.rrd"
 LOG = "log.txt"
+LOCK = "run.lock"
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -37,18 +44,64 @@ def write_json_atomic(path: Path, obj: Any) -> None:
 
 
 def read_json(path: Path) -> Any:
-    with open(path) as f:
-        return json.load(f)
+    """The JSON file ``path``; one that does not parse is a :class:`DamagedFileError`."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError
+        raise DamagedFileError(path, f"not valid JSON: {exc}") from exc
 
 
-def update_report(workspace: Path, fields: dict, times: dict | None = None) -> dict:
-    """Merge ``fields`` (and stage wall times under ``"times"``) into ``WORK/report.json``."""
-    path = Path(workspace) / REPORT
-    report = read_json(path) if path.exists() else {}
-    report.update(fields)
-    if times:
-        report.setdefault("times", {}).update({k: round(float(v), 3) for k, v in times.items()})
-        stages = ("T_feat", "T_match", "T_GC", "T_SfM", "T_merge", "T_BA")
-        report["times"]["total"] = round(sum(report["times"].get(k, 0.0) for k in stages), 3)
-    write_json_atomic(path, report)
-    return report
+class WorkspaceLock:
+    """``WORK/run.lock``: one run at a time in a workspace.
+
+    The run holds an exclusive ``flock`` on the file and writes its process id and command into
+    it; a second run is refused at once (:class:`WorkspaceBusyError`, naming the owner).  The
+    kernel drops the lock when its process ends, however it ends (``kill -9`` too), so the lock
+    of a run that is gone is taken over without asking.  Nested use in one process (the command
+    line, then :func:`sfm.stages.reconstruct.reconstruct`) shares the one lock.
+    """
+
+    _held: dict[str, list] = {}  # resolved path -> [fd, depth]
+
+    def __init__(self, workspace: Path, command: str = "") -> None:
+        self.path = Path(workspace) / LOCK
+        self.command = command
+
+    def __enter__(self) -> WorkspaceLock:
+        key = str(self.path.resolve())
+        if key in self._held:
+            self._held[key][1] += 1
+            return self
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX: no lock
+            return self
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            owner = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "a run that is starting"
+            os.close(fd)
+            raise WorkspaceBusyError(f"workspace {self.path.parent} is in use by another run ({owner}): "
+                                     "wait for it to end, or stop it") from None
+        previous = os.pread(fd, 4096, 0).decode(errors="replace").strip()
+        if previous:
+            log.info("%s: the run that held it (%s) is gone: taken over", self.path, previous)
+        supervisor = os.getppid() if os.environ.get("GRAPHSFM_STATUS_FILE") else os.getpid()
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {supervisor}, {self.command or 'graphsfm'}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n"
+                  .encode(), 0)
+        self._held[key] = [fd, 1]
+        return self
+
+    def __exit__(self, *exc) -> None:
+        key = str(self.path.resolve())
+        held = self._held.get(key)
+        if held is None:
+            return
+        held[1] -= 1
+        if held[1] == 0:
+            del self._held[key]
+            os.ftruncate(held[0], 0)  # the file stays (empty): removing it would race a new run
+            os.close(held[0])

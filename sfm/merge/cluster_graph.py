@@ -17,6 +17,7 @@ import numpy as np
 
 from backend.similarity import SimilarityOptions, estimate_similarity
 from graph.merge_plan import MergePlan, plan_merges
+from sfm.core import progress
 from sfm.core.model import INVALID_POINT3D, Reconstruction
 from sfm.merge.options import MergeOptions
 
@@ -54,8 +55,11 @@ def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: i
     """Similarity (``v_from_u``) and MSD of every pair of local models that can be aligned."""
     edges = {}
     sim_opts = SimilarityOptions(min_common_cameras=options.min_common_cameras, max_msd=options.max_msd, seed=seed)
+    num_pairs, done = len(models) * (len(models) - 1) // 2, 0
     for u in range(len(models)):
         for v in range(u + 1, len(models)):
+            done += 1
+            progress.report("model_pairs", done, num_pairs)
             data = common_data(models[u].model, models[v].model)
             if data is None or len(data[0]) < options.min_common_cameras:
                 continue
