@@ -38,7 +38,7 @@ import typing
 from pathlib import Path
 
 from sfm.clustering.options import ClusterOptions
-from sfm.console import setup_logging
+from sfm.console import setup_logging, teardown_logging
 from sfm.core import progress
 from sfm.core.options import OptionError, allowed, base_type, option_fields
 from sfm.core.progress import STATUS_FILE_ENV
@@ -494,6 +494,8 @@ def run(args: argparse.Namespace) -> int:
             log.debug("error: %s", message)
         print(f"graphsfm {args.command}: error: {message}", file=sys.stderr)
         return code
+    finally:
+        teardown_logging()
 
 
 def _on_stop(args: argparse.Namespace, signum: int, where: str) -> None:
@@ -510,6 +512,9 @@ def _on_stop(args: argparse.Namespace, signum: int, where: str) -> None:
                 f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} WARNING graphsfm: {line}\n")
             if (workspace / "report.json").exists():
                 finish_run(workspace, "stopped")
+            lock = workspace / "run.lock"
+            if lock.read_text().startswith(f"pid {os.getpid()},"):  # the stopped run's: free
+                lock.write_text("")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -529,7 +534,9 @@ def main(argv: list[str] | None = None) -> int:
     if supervised:
         from sfm.execution.processes import supervise
 
-        return supervise(["-m", "sfm.cli", *argv], lambda signum, where: _on_stop(args, signum, where))
+        # The resource tracker of a run that was stopped unlinks its semaphores without a warning.
+        child = ["-W", "ignore:resource_tracker:UserWarning", "-m", "sfm.cli", *argv]
+        return supervise(child, lambda signum, where: _on_stop(args, signum, where))
     return run(args)
 
 

@@ -75,14 +75,20 @@ def _not_warnings(record: logging.LogRecord) -> bool:
     return record.name != "py.warnings"
 
 
-def setup_logging(workspace: Path | None, verbosity: str = "normal") -> None:
-    """The root logger's stderr and ``WORK/log.txt`` handlers at ``verbosity`` (``quiet``,
-    ``normal``, ``debug``); progress bars off with ``quiet``."""
-    level = logging.DEBUG if verbosity == "debug" else logging.INFO
+def teardown_logging() -> None:
+    """Remove (and close) the handlers :func:`setup_logging` added."""
     root = logging.getLogger()
     for old in [h for h in root.handlers if getattr(h, "graphsfm", False)]:
         root.removeHandler(old)
         old.close()
+
+
+def setup_logging(workspace: Path | None, verbosity: str = "normal") -> None:
+    """The root logger's stderr and ``WORK/log.txt`` handlers at ``verbosity`` (``quiet``,
+    ``normal``, ``debug``); progress bars off with ``quiet``."""
+    level = logging.DEBUG if verbosity == "debug" else logging.INFO
+    teardown_logging()
+    root = logging.getLogger()
     root.setLevel(level)
     console = _Console(sys.stderr)
     console.setLevel(LEVELS[verbosity])
