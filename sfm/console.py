@@ -7,7 +7,7 @@
   it already; written through tqdm so that it does not break a progress bar.
 - ``WORK/log.txt``: INFO (``-v``: DEBUG), with time, level, process id, logger and task, so a
   line from a worker process says which cluster it worked for.  Python warnings (NumPy's, say)
-  are logged, not printed (``sfm.execution.logs.quiet_warnings``), at DEBUG.
+  are logged here, not printed (``sfm.execution.logs.quiet_warnings``).
 
 Worker processes' records reach these handlers through ``sfm.execution.logs``.  Progress bars
 (``sfm.core.progress``) are drawn when stderr is a terminal and ``-q`` is not given; otherwise

@@ -18,8 +18,8 @@ worker reports only the run that counted.  Progress events are not collected the
 arrive after the task ended.
 
 Each record carries the task it came from (``record.task``, ``sfm.core.progress.task``), and
-warnings of NumPy, OpenCV's Python layer and the rest are logged (``py.warnings``, at DEBUG in
-the log file) instead of printed.  Workers ignore SIGINT: Ctrl-C reaches the whole process
+warnings of NumPy, OpenCV's Python layer and the rest are logged (``py.warnings``: in the log
+file, not on the terminal) instead of printed.  Workers ignore SIGINT: Ctrl-C reaches the whole process
 group, and it is the parent that stops them (``sfm.execution.processes``).
 """
 
@@ -45,7 +45,6 @@ def quiet_warnings() -> None:
     OpenCV's C++ log prints errors only."""
     logging.captureWarnings(True)
     warnings.simplefilter("default")
-    logging.getLogger("py.warnings").setLevel(logging.DEBUG)
     try:
         import cv2
 
