@@ -17,9 +17,9 @@ class InputError(GraphsfmError):
     exit_code = 2
 
 
-class DamagedFileError(InputError):
-    """A workspace file that cannot be read (a damaged database or JSON file): the message names
-    it and says what to do (exit code 2)."""
+class DamagedFileError(InputError, ValueError):
+    """A file whose content cannot be read (a damaged database, JSON file or model): the message
+    names it and says what to do (exit code 2).  Also a ``ValueError``, as a parse error is."""
 
     def __init__(self, path, detail: str, remedy: str = "") -> None:
         remedy = remedy or "delete it and rerun: the stage that writes it runs again"

@@ -19,7 +19,8 @@ Stopping mid-stage is safe: every workspace file is written under a temporary na
 and the database one transaction at a time, so the state on disk is the one a ``kill -9``
 leaves, which a rerun resumes from.  A process that detached itself into a new session (a Rerun
 viewer) is left alone.  When the child ends normally, whatever it left in its process group is
-ended too.
+ended too.  Should the supervisor itself be killed (``kill -9``), the kernel kills the child
+with it (``PR_SET_PDEATHSIG``), so no run goes on holding the workspace.
 """
 
 from __future__ import annotations
@@ -125,6 +126,21 @@ def _end_group(pgid: int) -> None:
         pass
 
 
+def _child_setup(parent: int) -> None:
+    """In the child before it starts: a process group of its own (Ctrl-C at the terminal reaches
+    the supervisor only), and SIGKILL when the supervisor dies (``kill -9`` of ``graphsfm``
+    leaves no run behind that still holds the workspace)."""
+    os.setpgrp()
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG, Linux
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+    if os.getppid() != parent:  # the supervisor died before prctl
+        os._exit(1)
+
+
 def supervise(argv: list[str], on_stop: Callable[[int, str], None]) -> int:
     """Run ``python argv...`` in a child process in its own process group and wait for it; on
     SIGINT or SIGTERM end it and everything it started, call ``on_stop(signum, where)`` (where:
@@ -143,9 +159,10 @@ def supervise(argv: list[str], on_stop: Callable[[int, str], None]) -> int:
     saved = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     child = None
     try:
-        group = {"process_group": 0} if sys.version_info >= (3, 11) else {"preexec_fn": os.setpgrp}
+        parent = os.getpid()
         try:
-            child = subprocess.Popen([sys.executable, *argv], env=env, stdin=subprocess.DEVNULL, **group)
+            child = subprocess.Popen([sys.executable, *argv], env=env, stdin=subprocess.DEVNULL,
+                                     preexec_fn=lambda: _child_setup(parent))
             code = child.wait()
         except _Stop as exc:
             signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C while ending the tree

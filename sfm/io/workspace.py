@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sfm.core.progress import STATUS_FILE_ENV
 from sfm.errors import DamagedFileError, WorkspaceBusyError
 
 log = logging.getLogger(__name__)
@@ -52,13 +53,45 @@ def read_json(path: Path) -> Any:
         raise DamagedFileError(path, f"not valid JSON: {exc}") from exc
 
 
+GONE_OWNER_WAIT_S = 3.0
+
+
+def _flock(fd: int, fcntl, wait_s: float = 0.0) -> bool:
+    """Take the exclusive lock on ``fd``, trying for up to ``wait_s`` seconds."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except OSError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+
+
+def _gone(owner: str) -> bool:
+    """Whether the process named by a lock file's ``pid N, ...`` line no longer exists."""
+    try:
+        pid = int(owner.split(",")[0].split()[1])
+    except (IndexError, ValueError):
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
 class WorkspaceLock:
     """``WORK/run.lock``: one run at a time in a workspace.
 
     The run holds an exclusive ``flock`` on the file and writes its process id and command into
     it; a second run is refused at once (:class:`WorkspaceBusyError`, naming the owner).  The
     kernel drops the lock when its process ends, however it ends (``kill -9`` too), so the lock
-    of a run that is gone is taken over without asking.  Nested use in one process (the command
+    of a run that is gone is taken over without asking (after up to ``GONE_OWNER_WAIT_S`` when
+    the process the file names is gone but its run is still exiting).  Nested use in one process (the command
     line, then :func:`sfm.stages.reconstruct.reconstruct`) shares the one lock.
     """
 
@@ -78,17 +111,19 @@ class WorkspaceLock:
         except ImportError:  # pragma: no cover - not POSIX: no lock
             return self
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            owner = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "a run that is starting"
-            os.close(fd)
-            raise WorkspaceBusyError(f"workspace {self.path.parent} is in use by another run ({owner}): "
-                                     "wait for it to end, or stop it") from None
+        if not _flock(fd, fcntl):
+            owner = os.pread(fd, 4096, 0).decode(errors="replace").strip()
+            # A supervisor killed with -9 has just taken its run with it (PR_SET_PDEATHSIG): the
+            # lock is released as that run exits, a moment later.
+            if not (_gone(owner) and _flock(fd, fcntl, wait_s=GONE_OWNER_WAIT_S)):
+                os.close(fd)
+                raise WorkspaceBusyError(f"workspace {self.path.parent} is in use by another run "
+                                         f"({owner or 'a run that is starting'}): wait for it to end, or stop it")
         previous = os.pread(fd, 4096, 0).decode(errors="replace").strip()
         if previous:
             log.info("%s: the run that held it (%s) is gone: taken over", self.path, previous)
-        supervisor = os.getppid() if os.environ.get("GRAPHSFM_STATUS_FILE") else os.getpid()
+        # Under the command line's supervisor (sfm.execution.processes) its process id: the one to stop.
+        supervisor = os.getppid() if os.environ.get(STATUS_FILE_ENV) else os.getpid()
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {supervisor}, {self.command or 'graphsfm'}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n"
                   .encode(), 0)

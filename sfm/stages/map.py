@@ -96,6 +96,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
                 model = read_model(_folder(workspace, direct, label) / str(m))
                 log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
     todo = [k for k, label in enumerate(payloads.labels) if label not in done]
+    model_names: dict[str, set[str]] = {}  # registered image names of each model written now, by path
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
@@ -103,6 +104,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         label = payloads.labels[k]
         models = res.value or []
         written = write_models(models, _folder(workspace, direct, label))
+        model_names.update({w["path"]: {im.name for im in m.images.values()} for w, m in zip(written, models)})
         per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
                           "models": written, "error": res.error}
         if res.error is None:  # a failed cluster is tried again by the next run
@@ -121,7 +123,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     if direct:
         flat.sort(key=lambda m: -m["registered"])
         fields.update(models_fields(flat), merged=False, merge_components=0)
-        fields.update(model_facts(workspace, [registered_names(Path(m["path"])) for m in flat]))
+        fields.update(model_facts(workspace, [model_names.get(m["path"]) or registered_names(Path(m["path"])) for m in flat]))
         if len(flat) > 1:
             sizes = ", ".join(str(m["registered"]) for m in flat)
             fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction (sizes {sizes})"]

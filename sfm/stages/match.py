@@ -126,6 +126,8 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
     ledger.finish("match", "")
     update_report(workspace, {}, {"match": time.perf_counter() - start})
+    logger.info("match: %d pairs matched now, %d verified in all (median %d inliers), %.1f s", len(todo),
+                len(inliers), int(np.median(inliers)) if len(inliers) else 0, time.perf_counter() - start)
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
         num_pairs_processed=len(todo), num_verified=len(inliers),
