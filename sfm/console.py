@@ -108,5 +108,7 @@ def setup_logging(workspace: Path | None, verbosity: str = "normal") -> None:
     for handler in handlers:
         handler.graphsfm = True  # type: ignore[attr-defined]
         root.addHandler(handler)
+    # Dask's own INFO lines (connections, worker starts) are for -v.
+    logging.getLogger("distributed").setLevel(logging.DEBUG if verbosity == "debug" else logging.WARNING)
     quiet_warnings()
     progress.show_bars(False if verbosity == "quiet" else None)
