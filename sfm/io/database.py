@@ -38,6 +38,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from backend.camera_models import CAMERA_MODELS
+from sfm.errors import DamagedFileError
 from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 from sfm.io.database_schema import (
     CAMERA_MODEL_IDS,
@@ -126,6 +127,13 @@ def _geometry_row(image_id1: int, image_id2: int, geometry: TwoViewGeometry) -> 
     )  # fmt: skip
 
 
+def damaged_database(path: Path, exc: Exception) -> DamagedFileError:
+    """The one-line error of a database file SQLite cannot read (``database disk image is
+    malformed``, ``file is not a database``)."""
+    return DamagedFileError(path, str(exc), f"delete it (and {Path(path).name}-wal, -shm if there) and rerun "
+                            "with --images: the features are extracted and matched again")
+
+
 class Database:
     """A COLMAP-4-compatible database file; a context manager (``close`` on exit)."""
 
@@ -133,15 +141,23 @@ class Database:
         self.path = Path(path)
         self.readonly = readonly
         self._depth = 0
-        if readonly:
-            uri = f"{self.path.resolve().as_uri()}?mode=ro"
-            self._conn = sqlite3.connect(uri, uri=True, isolation_level=None, timeout=60.0)
-        else:
-            self._conn = sqlite3.connect(self.path, isolation_level=None, timeout=60.0)
-            self._conn.execute("PRAGMA journal_mode=WAL")
-            self._conn.execute("PRAGMA synchronous=NORMAL")
-            self._conn.executescript(SCHEMA)
-        columns = {r[1] for r in self._conn.execute("PRAGMA table_info(descriptors)")}
+        self._conn = None  # type: ignore[assignment]
+        try:
+            if readonly:
+                uri = f"{self.path.resolve().as_uri()}?mode=ro"
+                self._conn = sqlite3.connect(uri, uri=True, isolation_level=None, timeout=60.0)
+            else:
+                self._conn = sqlite3.connect(self.path, isolation_level=None, timeout=60.0)
+                self._conn.execute("PRAGMA journal_mode=WAL")
+                self._conn.execute("PRAGMA synchronous=NORMAL")
+                self._conn.executescript(SCHEMA)
+            columns = {r[1] for r in self._conn.execute("PRAGMA table_info(descriptors)")}
+        except sqlite3.DatabaseError as exc:
+            if self._conn is not None:
+                self._conn.close()
+            if type(exc) is sqlite3.DatabaseError:  # not locked, not a constraint: the file is damaged
+                raise damaged_database(self.path, exc) from exc
+            raise
         self._descriptors_have_type = "type" in columns  # False in COLMAP 3.x databases
 
     def close(self) -> None:
@@ -422,6 +438,14 @@ class Database:
     def num_keypoints(self) -> int:
         """Total number of keypoints over all images."""
         return self._scalar("SELECT SUM(rows) FROM keypoints")
+
+    def keypoint_counts(self) -> dict[int, int]:
+        """Keypoints per image id (images without a keypoints row are absent)."""
+        return {int(i): int(n) for i, n in self._conn.execute("SELECT image_id, rows FROM keypoints")}
+
+    def num_two_view_geometries(self) -> int:
+        """Pairs that went through verification (a row each, verified or not)."""
+        return self._scalar("SELECT COUNT(*) FROM two_view_geometries")
 
     def num_verified_pairs(self, min_inliers: int = 15) -> int:
         sql = "SELECT COUNT(*) FROM two_view_geometries WHERE config>=2 AND rows>=?"

@@ -98,14 +98,44 @@ class ImageInfo:
 
 
 def find_images(image_dir: Path) -> list[str]:
-    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted."""
+    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted.
+
+    Symbolic links are followed, but each real folder and file is visited once: a link back to
+    a folder already visited (a loop) or to a file already found is skipped, with one warning
+    line for all of them (the first name in walking order, folders and files sorted, wins)."""
     image_dir = Path(image_dir)
-    names = []
+    names, seen_dirs, seen_files, skipped = [], set(), set(), []
+
+    def key(path: str) -> tuple[int, int] | None:
+        try:
+            st = os.stat(path)
+        except OSError:  # a dangling link
+            return None
+        return st.st_dev, st.st_ino
+
     for root, dirs, files in os.walk(image_dir, followlinks=True):
+        here = key(root)
+        if here in seen_dirs:
+            skipped.append(Path(root).relative_to(image_dir).as_posix() + "/")
+            dirs[:] = []
+            continue
+        seen_dirs.add(here)
         dirs.sort()
-        for f in files:
-            if os.path.splitext(f)[1].lower() in IMAGE_EXTENSIONS:
-                names.append((Path(root) / f).relative_to(image_dir).as_posix())
+        for f in sorted(files):
+            if os.path.splitext(f)[1].lower() not in IMAGE_EXTENSIONS:
+                continue
+            path = os.path.join(root, f)
+            k = key(path)
+            name = Path(path).relative_to(image_dir).as_posix()
+            if k is not None and k in seen_files:
+                skipped.append(name)
+                continue
+            if k is not None:
+                seen_files.add(k)
+            names.append(name)
+    if skipped:
+        logger.warning("%d link(s) in %s lead to a folder or file already found and are skipped: %s", len(skipped),
+                       image_dir, ", ".join(skipped[:3]) + (" ..." if len(skipped) > 3 else ""))
     return sorted(names)
 
 

@@ -22,6 +22,7 @@ import logging
 
 import numpy as np
 
+from sfm.core import progress
 from sfm.core.model import Reconstruction
 from sfm.mapper.bundle_adjuster import FINAL_TOLERANCE, GROWING_TOLERANCE, BundleAdjuster
 from sfm.mapper.initialization import try_initial_pair
@@ -53,12 +54,14 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
     models: list[Reconstruction] = []
     tried: set = set()
     min_size = opts.smallest_model(len(payload.names))
+    num_images, closed = len(payload.names), 0  # images in the models already closed
     while len(models) < opts.max_num_models:
         if not try_initial_pair(state, tried):
             break
         adjuster.global_()
         last_global = state.num_registered
         log_progress(state, adjuster, recorder)
+        progress.report("registered", closed + state.num_registered, num_images)
         # A failed image is retried once it sees 20% more points (cheap on large clusters);
         # when nothing else registers, with any growth (at most MAX_REG_TRIALS failures), then
         # without PnP.
@@ -71,9 +74,11 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
             else:
                 adjuster.local(state.last_registered)
             log_progress(state, adjuster, recorder)
+            progress.report("registered", closed + state.num_registered, num_images)
         final_refinement(state, adjuster)
         model = to_reconstruction(state)
         n = state.num_registered
+        closed += n
         state.close_model()
         if n >= min_size:
             models.append(model)

@@ -31,8 +31,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
-
+from sfm.core import progress
 from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor, WorkerDied
 from sfm.features.cameras import CameraSpec, IntrinsicsTable, assign_cameras, read_intrinsics, warn_unused_lines
@@ -41,6 +40,7 @@ from sfm.features.options import ExtractOptions
 from sfm.io.database import Database
 from sfm.io.image_files import (BadImageError, ImageInfo, find_images, mask_path, probe_image, read_gray, read_mask,
                                 workers_for_memory)
+from sfm.io.report import update_report
 from sfm.io.workspace import DATABASE
 from sfm.stages.extract_writer import SIDECAR, ExtractWriter, extract_ledger
 
@@ -160,7 +160,7 @@ def _extract_all(
     extracted = 0
     items = _with_bytes(jobs) if executor.remote else jobs
     results = executor.map(_extract_job, items, num_items=len(jobs), max_workers=max_workers)
-    for result in tqdm(results, total=len(jobs), desc="extract", unit="img", disable=None):
+    for result in progress.bar(results, total=len(jobs), desc="extract", unit="img"):
         r = result.value
         error, probed = r.error, infos[r.name]
         if not error and (r.info.width, r.info.height) != (probed.width, probed.height):
@@ -194,10 +194,12 @@ def run_extract(
     closed (complete on its own, no WAL file) when this returns or raises.
     """
     t0 = time.perf_counter()
+    progress.stage("extract")
     executor = executor or LocalExecutor()
     image_dir, workspace = Path(image_dir), Path(workspace)
     if not image_dir.is_dir():
-        raise InputError(f"image folder not found: {image_dir}")
+        raise InputError(f"--images: {image_dir} is a file, not a folder of images" if image_dir.exists()
+                         else f"image folder not found: {image_dir}")
     names = find_images(image_dir)
     if not names:
         raise InputError(f"no images found in {image_dir}")
@@ -242,6 +244,9 @@ def run_extract(
         mean_keypoints = db.num_keypoints() / max(num_with_keypoints, 1)
         num_cameras = db.num_cameras()
     ledger.finish("extract", "")
+    update_report(workspace, {"image_dir": str(image_dir.resolve()),
+                              "bad_files": [{"name": n, "reason": r} for n, r in bad]},
+                  {"extract": time.perf_counter() - t0})
     result = ExtractResult(len(names), extracted, skipped, bad, num_cameras, mean_keypoints,
                            time.perf_counter() - t0)  # fmt: skip
     logger.info(

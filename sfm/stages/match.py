@@ -19,14 +19,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
-
+from sfm.core import progress
 from sfm.core.geodesy import enu_from_wgs84
 from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor
 from sfm.io.database import Database
 from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.io.ledger import options_record, resume_or_restart
+from sfm.io.report import update_report
 from sfm.matching.options import MatchOptions
 from sfm.matching.pair_matcher import PairBatch, close_matchers, match_batch
 from sfm.matching.pairs import select_pairs
@@ -118,6 +118,7 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
     ``executor``: where the pairs are matched (``sfm.execution``; default: a local pool of one
     process per core); only this process writes the database."""
     start = time.perf_counter()
+    progress.stage("match")
     executor = executor or LocalExecutor()
     db_path = Path(workspace) / "database.db"
     if not db_path.is_file():
@@ -148,6 +149,9 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
     ledger.finish("match", "")
+    update_report(workspace, {}, {"match": time.perf_counter() - start})
+    logger.info("match: %d pairs matched now, %d verified in all (median %d inliers), %.1f s", len(todo),
+                len(inliers), int(np.median(inliers)) if len(inliers) else 0, time.perf_counter() - start)
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
         num_pairs_processed=len(todo), num_verified=len(inliers),
@@ -174,7 +178,7 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
     try:
         results = executor.map(match_batch, tasks, num_items=-(-len(todo) // size))
         pairs = (r for task in results for r in task.value)
-        for id1, id2, matches, geometry, tm, tv in tqdm(pairs, total=len(todo), desc="match", unit="pair"):
+        for id1, id2, matches, geometry, tm, tv in progress.bar(pairs, total=len(todo), desc="match", unit="pair"):
             batch.append((id1, id2, matches, geometry))
             t_match, t_verify = t_match + tm, t_verify + tv
             if len(batch) >= BATCH_PAIRS:
