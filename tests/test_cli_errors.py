@@ -46,7 +46,7 @@ def graphsfm(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
      "graphsfm reconstruct: error: unknown option '--max-clustr-size' (did you mean '--max-cluster-size'?)"),
     (["reconstrct", "--workspace", "w"],
      "graphsfm: error: unknown command 'reconstrct' (did you mean 'reconstruct'?); the commands: extract, match, "
-     "cluster, map, merge, reconstruct, demo, evaluate, export, synth"),
+     "cluster, map, merge, reconstruct, demo, evaluate, export, info, align, synth"),
     (["synth", "--workspace", "w", "--images", "5"],
      "graphsfm synth: error: unknown option '--images' (did you mean '--num-images'?)"),
     (["reconstruct", "--workspace", "w", "--workers", "x"],
@@ -54,7 +54,7 @@ def graphsfm(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
     (["reconstruct", "--workspace", "w", "--workers"], "graphsfm reconstruct: error: --workers: needs a value (>= 0)"),
     (["map"], "graphsfm map: error: the following arguments are required: --workspace"),
     ([], "graphsfm: error: a command is needed: one of extract, match, cluster, map, merge, reconstruct, demo, "
-         "evaluate, export, synth"),
+         "evaluate, export, info, align, synth"),
 ])
 def test_a_parser_error_is_one_line_then_a_short_usage_line(capsys, argv, line):
     code, err = run_main(capsys, *argv)
@@ -119,8 +119,8 @@ def test_export_onto_an_existing_output_is_refused(tmp_path, capsys):
     model = tmp_path / "gt" / "model"
     (tmp_path / "points.ply").write_text("mine")
     code, err = run_main(capsys, "export", str(model), str(tmp_path / "points.ply"), "--to", "ply")
-    assert code == 2 and err == [f"graphsfm export: error: {tmp_path / 'points.ply'} exists: export writes a new file "
-                                 "or folder; give another path or remove it"]
+    assert code == 2 and err == [f"graphsfm export: error: {tmp_path / 'points.ply'} exists; choose another output "
+                                 "or pass --overwrite to replace it"]
     assert (tmp_path / "points.ply").read_text() == "mine"
     assert run_main(capsys, "export", str(model), str(tmp_path / "txt"), "--to", "txt")[0] == 0
     assert run_main(capsys, "export", str(model), str(tmp_path / "txt"), "--to", "txt")[0] == 2
