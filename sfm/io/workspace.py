@@ -18,6 +18,7 @@ MERGE = "merge.json"
 REPORT = "report.json"
 RECORDING = "recording.rrd"
 LOG = "log.txt"
+EXTRACT_STATE = "extract.json"
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -52,3 +53,14 @@ def update_report(workspace: Path, fields: dict, times: dict | None = None) -> d
         report["times"]["total"] = round(sum(report["times"].get(k, 0.0) for k in stages), 3)
     write_json_atomic(path, report)
     return report
+
+
+def image_dir_of(workspace: Path) -> Path | None:
+    """The image folder the extract stage read (``WORK/extract.json``), if it still exists: where
+    the recording finds the images of a workspace whose extraction ran earlier."""
+    path = Path(workspace) / EXTRACT_STATE
+    try:
+        image_dir = Path(read_json(path)["image_dir"]) if path.exists() else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return image_dir if image_dir is not None and image_dir.is_dir() else None

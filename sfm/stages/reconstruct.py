@@ -63,9 +63,9 @@ def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOp
     recorder = recorder or Recorder.disabled()
     if images is not None:
         t0 = time.perf_counter()
-        run_extract(Path(images), workspace, options.extract, executor)
+        run_extract(Path(images), workspace, options.extract, executor, recorder)
         t1 = time.perf_counter()
-        run_match(workspace, options.match, executor)
+        run_match(workspace, options.match, executor, recorder)
         update_report(workspace, {"image_dir": str(images)}, {"T_feat": t1 - t0, "T_match": time.perf_counter() - t1})
     t0 = time.perf_counter()
     cluster_result = run_cluster(workspace, options.cluster, recorder)
@@ -85,6 +85,6 @@ def reconstruct(images: Path | None, workspace: Path, options: ReconstructOption
     if options.execution.executor == "local":
         start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
     rec = options.recording
-    recorder = Recorder(workspace / RECORDING, workspace, spawn=rec.spawn) if rec.recording else Recorder.disabled()
+    recorder = Recorder(workspace / RECORDING, workspace, rec.spawn, rec) if rec.recording else Recorder.disabled()
     with recorder, make_executor(options.execution) as executor:
         return run_reconstruct(workspace, images, options, executor, recorder)
