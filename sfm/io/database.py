@@ -421,6 +421,10 @@ class Database:
     def num_images(self) -> int:
         return self._scalar("SELECT COUNT(*) FROM images")
 
+    def keypoint_counts(self) -> dict[int, int]:
+        """The number of keypoints of each image that has keypoints."""
+        return {int(i): int(n) for i, n in self._conn.execute("SELECT image_id, rows FROM keypoints")}
+
     def num_keypoints(self) -> int:
         """Total number of keypoints over all images."""
         return self._scalar("SELECT SUM(rows) FROM keypoints")

@@ -5,10 +5,13 @@ so :func:`sfm.mapper.incremental.reconstruct_incremental` fills a :class:`Growth
 travels back with the models and is logged by the main process (``sfm.viz.mapping``): a
 cluster run in the main process and one run by a worker look the same in the recording.
 
-A :class:`Growth` is bounded: per registration the poses of the registered images (48 bytes
-each), the RMS reprojection error of the last bundle adjustment and at most ``max_points``
-points, a fixed sample of the model's tracks (the tracks with the smallest hash of their id
-among the triangulated ones, so a point, once shown, stays in the sample while it exists).
+A :class:`Growth` is bounded: per registration the new image's pose, the RMS reprojection error
+of the last bundle adjustment and at most ``max_points`` points, a fixed sample of the model's
+tracks (the tracks with the smallest hash of their id among the triangulated ones, so a point,
+once shown, stays in the sample while it exists); the poses of all registered images (which
+every global bundle adjustment moves) only while the model has at most
+:data:`ALL_POSES_UP_TO` images and then whenever it has grown by :data:`ALL_POSES_GROWTH`, and
+after the final refinement: O(n log n) poses for a model of n images, not O(n^2).
 Per model it also keeps, for each image the model left out, why.
 """
 
@@ -23,15 +26,21 @@ from sfm.mapper.output import mean_colors
 from sfm.mapper.state import MapperState
 
 
+ALL_POSES_UP_TO = 10  # images: young models move a lot (as EARLY_GLOBAL_BA_IMAGES)
+ALL_POSES_GROWTH = 1.2  # then every 20% of growth
+
+
 @dataclass
 class GrowthStep:
-    """The model after one registration: ``new`` the images registered by it (two for the
-    initial pair), ``registered`` the local indices of every registered image and their
-    ``cam_from_world`` poses, ``ba_rms_px`` the last bundle adjustment's RMS reprojection error,
-    ``points`` / ``colors`` the sample of points."""
+    """The model after one registration: ``num_registered`` images, ``new`` the images
+    registered by it (two for the initial pair; none for the final refinement), ``posed`` the
+    local indices of the images whose ``cam_from_world`` poses this step holds (the new ones, or
+    all), ``ba_rms_px`` the last bundle adjustment's RMS reprojection error, ``points`` /
+    ``colors`` the sample of points."""
 
+    num_registered: int
     new: list[int]
-    registered: np.ndarray
+    posed: np.ndarray
     rotations: np.ndarray  # (n, 3, 3) float32
     translations: np.ndarray  # (n, 3) float32
     ba_rms_px: float
@@ -49,6 +58,8 @@ class ModelGrowth:
     rank: int = -1
     size: int = 0
     left_out: dict[str, str] = field(default_factory=dict)
+    registered: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # at the last step
+    all_posed_at: int = 0  # images when the poses of all were last kept
 
 
 @dataclass
@@ -80,9 +91,17 @@ class Growth:
             valid = valid[np.argpartition(self._priority[valid], self.max_points - 1)[: self.max_points]]
             valid.sort()
         reg = np.flatnonzero(state.registered)
+        model = self.models[-1]
+        n = len(reg)
+        if not new or n <= ALL_POSES_UP_TO or n >= ALL_POSES_GROWTH * model.all_posed_at:
+            model.all_posed_at = n
+            posed = reg
+        else:
+            posed = np.array(sorted(new), dtype=np.int64)
+        model.registered = reg
         self.models[-1].steps.append(GrowthStep(
-            new=[int(i) for i in new], registered=reg, rotations=state.R[reg].astype(np.float32),
-            translations=state.t[reg].astype(np.float32), ba_rms_px=float(ba_rms_px),
+            num_registered=n, new=[int(i) for i in new], posed=posed, rotations=state.R[posed].astype(np.float32),
+            translations=state.t[posed].astype(np.float32), ba_rms_px=float(ba_rms_px),
             points=state.track_xyz[valid].astype(np.float32), colors=self._track_rgb[valid]))
 
     def close(self, state: MapperState) -> None:

@@ -220,9 +220,8 @@ def run_extract(
         if skipped:
             logger.info("%d of %d images already have features in %s: skipped", skipped,
                         len(names), db.path)  # fmt: skip
-        thumbnail_size = recorder.options.thumbnail_size if recorder.enabled else 0
+        thumbnail_size = recorder.options.thumbnail_size if recorder.requested else 0  # no wait for the stream
         recorder.image_dir = image_dir
-        recorder.stage("extract")
         jobs = [_Job(n, str(image_dir / n), options, thumbnail_size=thumbnail_size) for n in todo]
         if jobs:
             max_workers = workers_for_memory(options.max_image_size)
@@ -263,11 +262,11 @@ def log_extract(recorder: Recorder, db: Database, options: ExtractOptions, bad: 
     then the stage's text of the tour."""
     recorder.stage("extract")
     images = db.read_images()
-    keypoints = db.read_all_keypoints()
     for image_id, record in sorted(images.items(), key=lambda kv: kv[1].name):
-        if record.name not in recorder.thumbnails and image_id in keypoints:
+        if record.name not in recorder.thumbnails:
             thumb = recorder.thumbnail(record.name)
-            if thumb is not None:
-                log_image(recorder, record.name, thumb, keypoints[image_id])
-    counts = np.array([len(keypoints.get(i, ())) for i in images], dtype=np.int64)
+            keypoints = db.read_keypoints(image_id)
+            if thumb is not None and len(keypoints):
+                log_image(recorder, record.name, thumb, keypoints)
+    counts = np.array(list(db.keypoint_counts().values()), dtype=np.int64)
     recorder.tour("extract", extract_text(counts, db.num_cameras(), options, bad))

@@ -19,6 +19,7 @@ from graph.merge_plan import MergePlan
 from backend.geometry import rotation_to_quaternion
 from sfm.errors import InputError, NoModelError
 from sfm.io.colmap_model import read_model
+from sfm.io.database import Database
 from sfm.io.ledger import Ledger, fingerprint, options_record
 from sfm.io.workspace import DATABASE, MERGE, REPORT, image_dir_of, read_json, update_report, write_json_atomic
 from sfm.mapper.options import MapperOptions
@@ -90,7 +91,16 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     input_fp = _local_models_fingerprint(workspace)
     if ledger.is_current("merge", opts, input_fp) and (workspace / "sparse" / "0" / "images.bin").exists():
         log.info("merge: %s is current (same options, same local models): skipped", workspace / "sparse")
-        return MergeResult(**ledger.record("merge")["result"])
+        result = MergeResult(**ledger.record("merge")["result"])
+        if recorder.enabled:  # the recording of this run still shows the merged model
+            recorder.tour("merge", f"## 5. Merge\n\nThe merged models in `sparse/` are current (same options, same "
+                                   f"local models): the merge was not run again; `merge.json` holds its plan.")
+            recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+            finals = [read_model(m["path"]) for m in result.models]
+            with Database(workspace / DATABASE, readonly=True) as db:
+                num_images = db.num_images()
+            log_final_models(recorder, finals, num_images, mapper_options)
+        return result
     if ledger.record("merge"):
         log.info("merge: runs again: %s", ledger.why_stale("merge", opts, input_fp))
     ledger.start("merge", opts, input_fp)

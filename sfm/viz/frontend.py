@@ -34,6 +34,7 @@ def log_image(recorder: Recorder, name: str, thumb: Thumbnail, keypoints: np.nda
     import rerun as rr
 
     recorder.thumbnails[name] = thumb
+    recorder.stage("extract")
     entity = f"images/{entity_part(name)}"
     recorder.log(entity, rr.EncodedImage(contents=thumb.jpeg, media_type="image/jpeg"))
     kp = np.asarray(keypoints, dtype=np.float64)

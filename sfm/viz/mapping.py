@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sfm.viz.models import frustum_depth, log_frustum, log_model, log_pose
+from sfm.viz.models import frustum_depth, log_frustum, log_model, world_centres, world_quaternions
 from sfm.viz.recorder import Recorder, entity_part
 
 
@@ -22,7 +22,8 @@ def model_prefix(label: str, rank: int, attempt: int) -> str:
 
 
 def log_growth(recorder: Recorder, growth) -> int:
-    """Log a cluster's :class:`sfm.mapper.growth.Growth` (module docstring); returns how many of its images no model holds."""
+    """Log a cluster's :class:`sfm.mapper.growth.Growth` (module docstring), each entity's steps
+    in one call; returns how many of its images no model holds."""
     if not recorder.enabled:
         return sum(1 for _ in _left_out(growth))
     import rerun as rr
@@ -30,22 +31,38 @@ def log_growth(recorder: Recorder, growth) -> int:
     recorder.stage("map")
     label = growth.label
     for attempt, model in enumerate(growth.models):
+        if not model.steps:
+            continue
         prefix = model_prefix(label, model.rank, attempt)
-        depth = None
+        times = [step.num_registered for step in model.steps]
+        poses: dict[int, list] = {}  # image -> [(time, R, t)]
         for step in model.steps:
-            recorder.set_time("registration", len(step.registered))
-            centers = -np.einsum("nji,nj->ni", step.rotations.astype(np.float64), step.translations.astype(np.float64))
-            if depth is None or len(step.registered) <= 3:
-                depth = frustum_depth(step.points, centers)
-            for i, R, t in zip(step.registered.tolist(), step.rotations, step.translations):
-                log_pose(recorder, f"{prefix}/cams/{entity_part(growth.names[i])}", R, t)
+            for i, R, t in zip(step.posed.tolist(), step.rotations, step.translations):
+                poses.setdefault(i, []).append((step.num_registered, R, t))
+        for i, rows in poses.items():
+            rotations = np.array([R for _, R, _ in rows], dtype=np.float64)
+            translations = np.array([t for _, _, t in rows], dtype=np.float64)
+            recorder.send_columns(f"{prefix}/cams/{entity_part(growth.names[i])}", "registration", [r[0] for r in rows],
+                                  rr.Transform3D.columns(translation=world_centres(rotations, translations),
+                                                         quaternion=world_quaternions(rotations)))
+        first = model.steps[min(len(model.steps), 3) - 1]  # frustums sized by the young model
+        first_centres = world_centres(first.rotations.astype(np.float64), first.translations.astype(np.float64))
+        depth = frustum_depth(first.points, first_centres)
+        for step in model.steps:
+            recorder.set_time("registration", step.num_registered)
             for i in step.new:
                 width, height = growth.sizes[i]
                 log_frustum(recorder, f"{prefix}/cams/{entity_part(growth.names[i])}", growth.names[i], growth.K[i],
                             int(width), int(height), depth)
-            recorder.log(f"{prefix}/points", rr.Points3D(step.points, colors=step.colors))
-            if np.isfinite(step.ba_rms_px):
-                recorder.log(f"{prefix}/ba_rms_px", rr.Scalars(step.ba_rms_px))
+        lengths = [len(step.points) for step in model.steps]
+        points = np.concatenate([step.points for step in model.steps]).reshape(-1, 3)
+        colors = np.concatenate([step.colors for step in model.steps]).reshape(-1, 3)
+        recorder.send_columns(f"{prefix}/points", "registration", times,
+                              rr.Points3D.columns(positions=points, colors=colors).partition(lengths))
+        rms = [(k, step.ba_rms_px) for k, step in zip(times, model.steps) if np.isfinite(step.ba_rms_px)]
+        if rms:
+            recorder.send_columns(f"{prefix}/ba_rms_px", "registration", [k for k, _ in rms],
+                                  rr.Scalars.columns(scalars=[x for _, x in rms]))
     recorder.clear_time("registration")
     left_out = list(_left_out(growth))
     lines = [f"| {name} | {reason} |" for name, reason in left_out]
@@ -63,7 +80,7 @@ def _left_out(growth):
     kept = set()
     for model in growth.models:
         if model.rank >= 0:
-            kept |= {growth.names[i] for i in model.steps[-1].registered.tolist()} if model.steps else set()
+            kept |= {growth.names[i] for i in model.registered.tolist()}
     first = growth.models[0].left_out if growth.models else {}
     for name in growth.names:
         if name not in kept:

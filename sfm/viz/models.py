@@ -22,15 +22,25 @@ def frustum_depth(points: np.ndarray, centers: np.ndarray) -> float:
     return depth if np.isfinite(depth) and depth > 0 else 1.0
 
 
+def world_centres(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """Camera centres ``-R.T t`` of ``cam_from_world`` poses (N, 3, 3), (N, 3)."""
+    return -np.einsum("nji,nj->ni", rotations, translations)
+
+
+def world_quaternions(rotations: np.ndarray) -> np.ndarray:
+    """``world_from_cam`` rotations of ``cam_from_world`` ones as Rerun's ``(x, y, z, w)``."""
+    q = np.array([rotation_to_quaternion(R.T) for R in np.asarray(rotations, dtype=np.float64)]).reshape(-1, 4)
+    return q[:, [1, 2, 3, 0]]
+
+
 def log_pose(recorder: Recorder, entity: str, rotation: np.ndarray, translation: np.ndarray) -> None:
     """``entity``: the camera's pose given ``cam_from_world`` (logged as ``world_from_cam``)."""
     import rerun as rr
 
-    rotation = np.asarray(rotation, dtype=np.float64)
-    world_from_cam = rotation.T
-    q = rotation_to_quaternion(world_from_cam)
-    recorder.log(entity, rr.Transform3D(translation=-world_from_cam @ np.asarray(translation, dtype=np.float64),
-                                        quaternion=[q[1], q[2], q[3], q[0]]))
+    rotation = np.asarray(rotation, dtype=np.float64)[None]
+    translation = np.asarray(translation, dtype=np.float64)[None]
+    recorder.log(entity, rr.Transform3D(translation=world_centres(rotation, translation)[0],
+                                        quaternion=world_quaternions(rotation)[0]))
 
 
 def log_frustum(recorder: Recorder, entity: str, name: str, K: np.ndarray, width: int, height: int,

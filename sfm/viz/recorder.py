@@ -51,6 +51,7 @@ class Recorder:
         self.texts: dict[str, str] = {}
         self.views: dict[str, list[str]] = {"images": [], "pairs": [], "clusters": [], "world": []}
         self._rec = None
+        self._stage = 0
         self._error: BaseException | None = None
         self._opening: threading.Thread | None = None
         if self.path is None:
@@ -59,6 +60,7 @@ class Recorder:
         # caller goes on; the first use waits for it.
         self._opening = threading.Thread(target=self._open, args=(workspace, spawn), daemon=True)
         self._opening.start()
+        threading.Thread(target=_preload, daemon=True).start()
 
     def _open(self, workspace: Path | None, spawn: bool) -> None:
         try:
@@ -96,6 +98,11 @@ class Recorder:
     def enabled(self) -> bool:
         return self._stream() is not None
 
+    @property
+    def requested(self) -> bool:
+        """Whether a recording was asked for, without waiting for the stream to open."""
+        return self.path is not None and self._error is None
+
     # ------------------------------------------------------------------ time and logging
     def stage(self, name: str) -> None:
         """Move the ``stage`` timeline to the stage's fixed position; the stage-local timelines
@@ -103,6 +110,7 @@ class Recorder:
         if (rec := self._stream()) is not None:
             rec.reset_time()
             rec.set_time("stage", sequence=STAGES[name])
+            self._stage = STAGES[name]
 
     def set_time(self, timeline: str, sequence: int) -> None:
         if (rec := self._stream()) is not None:
@@ -116,6 +124,17 @@ class Recorder:
     def log(self, entity: str, *archetypes, static: bool = False) -> None:
         if (rec := self._stream()) is not None:
             rec.log(entity, *archetypes, static=static)
+
+    def send_columns(self, entity: str, timeline: str, sequence, columns) -> None:
+        """Many rows of one entity in one call (``rerun.send_columns``): row k at ``sequence[k]``
+        on ``timeline``, all at the current stage."""
+        if (rec := self._stream()) is not None:
+            import rerun as rr
+
+            sequence = [int(x) for x in sequence]
+            indexes = [rr.TimeColumn(timeline, sequence=sequence),
+                       rr.TimeColumn("stage", sequence=[self._stage] * len(sequence))]
+            rec.send_columns(entity, indexes=indexes, columns=columns)
 
     # ------------------------------------------------------------------ the tour
     def tour(self, stage: str, markdown: str) -> None:
@@ -160,6 +179,16 @@ class Recorder:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _preload() -> None:
+    """Import what the graph views' layout needs (``sfm.viz.graphs``: networkx, SciPy's
+    optimiser, about a second) while the run's first stages go on."""
+    try:
+        import networkx  # noqa: F401
+        import scipy.optimize  # noqa: F401
+    except ImportError:  # pragma: no cover - dependencies of graphsfm
+        pass
 
 
 def entity_paths(rrd_path: Path) -> set[str]:
