@@ -65,13 +65,13 @@ class ModelGrowth:
 @dataclass
 class Growth:
     """Every model attempt of one cluster, with the cluster's image names and cameras (each
-    image's calibration matrix and size, after the last model's refinement)."""
+    image's calibration matrix and size, as the last finished model refined them)."""
 
     label: str
     names: list[str]
     max_points: int
     models: list[ModelGrowth] = field(default_factory=list)
-    K: np.ndarray | None = None  # (n, 3, 3): each image's calibration, updated at every step
+    K: np.ndarray | None = None  # (n, 3, 3): each image's calibration, set when a model closes
     sizes: np.ndarray | None = None  # (n, 2) width, height
     _track_rgb: np.ndarray | None = None
     _priority: np.ndarray | None = None
@@ -85,7 +85,6 @@ class Growth:
             self._track_rgb = mean_colors(state, rows, state.starts)
             ids = np.arange(state.num_tracks, dtype=np.uint64)
             self._priority = (ids * np.uint64(2654435761)) & np.uint64(0xFFFFFFFF)  # Knuth's hash
-        self._cameras(state)
         valid = np.flatnonzero(state.track_valid)
         if len(valid) > self.max_points:
             valid = valid[np.argpartition(self._priority[valid], self.max_points - 1)[: self.max_points]]
@@ -110,6 +109,7 @@ class Growth:
             return
         model = self.models[-1]
         model.size = int(state.num_registered)
+        self._cameras(state)
         for i in np.flatnonzero(~state.registered):
             model.left_out[self.names[i]] = left_out_reason(state, int(i))
 
