@@ -126,8 +126,15 @@ print(f"{match.num_pairs_considered} pairs matched, {match.num_verified} verifie
 
 def draw_edges(ax, colors=None, widths=None):
     for k, (a, b) in enumerate(zip(ei, ej)):
-        ax.plot(*positions[[a, b]].T, color="0.6" if colors is None else colors[k],
-                lw=0.3 + 2.5 * weights[k] / weights.max() if widths is None else widths[k], zorder=1)
+        strength = weights[k] / weights.max()
+        ax.plot(*positions[[a, b]].T, color="0.6" if colors is None else colors[k], alpha=0.2 + 0.8 * strength,
+                lw=0.3 + 2.5 * strength if widths is None else widths[k], zorder=1)
+
+
+def label_edge(ax, pos, a, b, text):
+    """An edge's label a third of the way from its first node: crossing edges' labels part."""
+    ax.annotate(text, pos[a] + 0.35 * (pos[b] - pos[a]), fontsize=8, ha="center", va="center",
+                bbox=dict(boxstyle="round", fc="white", ec="none"))
 
 
 fig, ax = plt.subplots(figsize=(8, 8))
@@ -192,8 +199,7 @@ fig, ax = plt.subplots(figsize=(7, 7))
 for a, b, lost in data["lost_edges"]:
     tree = (a, b) in maxst
     ax.plot(*centres[[a, b]].T, color="orange" if tree else "0.7", lw=5 if tree else 1, ls="-" if tree else "--", zorder=1)
-    ax.annotate(f"{lost}", centres[[a, b]].mean(axis=0), fontsize=9, ha="center",
-                bbox=dict(boxstyle="round", fc="white", ec="none"))
+    label_edge(ax, centres, a, b, f"{lost}")
 for c in data["clusters"]:
     ax.scatter(*centres[c["id"]], s=60 * c["size"], color=color(c["id"]), edgecolors="black", zorder=2)
     ax.annotate(f"C{c['id']}\n{c['core_size']}+{c['size'] - c['core_size']}", centres[c["id"]], ha="center",
@@ -224,6 +230,10 @@ for ax, (label, model) in zip(axes[0], local.items()):
     cams = np.array([im.center for im in model.images.values()])
     ax.scatter(xyz[:, 0], xyz[:, 2], s=0.5, c=rgb)
     ax.scatter(cams[:, 0], cams[:, 2], s=25, marker="^", color=color(int(label[1:])), edgecolors="black")
+    lo = np.minimum(np.percentile(xyz, 1, axis=0), cams.min(axis=0))[[0, 2]] - 0.3
+    hi = np.maximum(np.percentile(xyz, 99, axis=0), cams.max(axis=0))[[0, 2]] + 0.3
+    ax.set_xlim(lo[0], hi[0])  # the 1% farthest points left out of the frame
+    ax.set_ylim(lo[1], hi[1])
     ax.set_title(f"{label}: {len(model.images)} cameras, {len(model.points3D)} points\n(its own frame, x-z)", fontsize=9)
     ax.set_aspect("equal")
 fig.suptitle("Local models, each in its own frame (section 3.2): points in their colours, cameras as triangles",
@@ -260,8 +270,7 @@ else:
         in_tree = (min(a, b), max(a, b)) in tree
         ax.plot(*pos[[a, b]].T, color="orange" if in_tree else ("0.7" if e["used"] else "red"),
                 lw=5 if in_tree else 1, ls="-" if in_tree else "--", zorder=1)
-        ax.annotate(f"{e['msd']:.1e}", pos[[a, b]].mean(axis=0), fontsize=8, ha="center",
-                    bbox=dict(boxstyle="round", fc="white", ec="none"))
+        label_edge(ax, pos, a, b, f"{e['msd']:.1e}")
     for k, label in enumerate(labels):
         anchor = k == comp["anchor"]
         layer = "anchor" if anchor else f"layer {comp['layers'].get(str(k), '?')}"
@@ -286,7 +295,7 @@ result = evaluate(model, GT)
 errors = np.array([p.error for p in model.points3D.values()])
 rot = np.array(list(result.rotation_errors_deg.values()))
 print(f"{result.num_registered}/{result.num_gt_images} registered, {len(model.points3D)} points, mean reprojection "
-      f"error {errors.mean():.3f} px; median rotation error {result.median_rotation_error_deg:.4f} deg; "
+      f"error {model.mean_reprojection_error():.3f} px; median rotation error {result.median_rotation_error_deg:.4f} deg; "
       f"AUC@1/5/10 {result.auc[1]:.3f} / {result.auc[5]:.3f} / {result.auc[10]:.3f}")
 xyz = np.array([p.xyz for p in model.points3D.values()])
 rgb = np.array([p.color for p in model.points3D.values()]) / 255.0
