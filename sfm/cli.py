@@ -153,7 +153,7 @@ def _recorder(args: argparse.Namespace, stage: str):
     if not rec.recording:
         return Recorder.disabled()
     workspace = Path(args.workspace)
-    return Recorder(workspace / f"recording-{stage}.rrd", workspace=workspace, spawn=rec.spawn)
+    return Recorder(workspace / f"recording-{stage}.rrd", workspace=workspace, spawn=rec.spawn, options=rec)
 
 
 def _print(obj, digits: int = 6) -> None:
@@ -172,27 +172,21 @@ def _image_dir(images: str) -> Path:
 # ------------------------------------------------------------------------------- commands
 def cmd_extract(args: argparse.Namespace) -> int:
     from sfm.stages.extract import run_extract
-    from sfm.viz.frontend import log_images
 
     images = _image_dir(args.images)
     options = options_of(ExtractOptions, args)
-    with make_executor(options_of(ExecutionOptions, args)) as executor:
-        result = run_extract(images, Path(args.workspace), options, executor)
-    with _recorder(args, "extract") as recorder:
-        log_images(recorder, images, Path(args.workspace))
+    with _recorder(args, "extract") as recorder, make_executor(options_of(ExecutionOptions, args)) as executor:
+        result = run_extract(images, Path(args.workspace), options, executor, recorder)
     _print(dataclasses.asdict(result))
     return 0
 
 
 def cmd_match(args: argparse.Namespace) -> int:
     from sfm.stages.match import run_match
-    from sfm.viz.frontend import log_verified_graph
 
     options = options_of(MatchOptions, args)
-    with make_executor(options_of(ExecutionOptions, args)) as executor:
-        result = run_match(Path(args.workspace), options, executor)
-    with _recorder(args, "match") as recorder:
-        log_verified_graph(recorder, Path(args.workspace))
+    with _recorder(args, "match") as recorder, make_executor(options_of(ExecutionOptions, args)) as executor:
+        result = run_match(Path(args.workspace), options, executor, recorder)
     _print(dataclasses.asdict(result))
     return 0
 

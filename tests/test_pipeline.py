@@ -37,8 +37,8 @@ def test_reconstruct_from_database_with_clusters(tmp_path):
     assert component["anchor"] in component["clusters"]
     assert all(e["msd"] >= 0 for e in merge["edges"])
     paths = entity_paths(tmp_path / "recording.rrd")
-    assert {"/graph/images", "/graph/clusters", "/graph/clusters/merge", "/world/points"} <= paths
-    assert any(p.startswith("/clusters/C0/cams/") for p in paths) and any(p.startswith("/merge/") for p in paths)
+    assert {"/graph/images", "/graph/clusters", "/graph/merge", "/world/points", "/tour"} <= paths
+    assert any(p.startswith("/clusters/C0/model0/cams/") for p in paths) and any(p.startswith("/merge/") for p in paths)
     assert any(p.startswith("/world/cams/") for p in paths)
 
 

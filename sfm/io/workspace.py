@@ -28,6 +28,7 @@ LOG = "log.txt"
 #: Beside a georegistered model's files: the ENU origin and the fit (``sfm.evaluation.georegistration``).
 GEOREGISTRATION = "georegistration.json"
 LOCK = "run.lock"
+EXTRACT_STATE = "extract.json"
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -157,3 +158,14 @@ def read_georegistration(model_folder: Path) -> dict | None:
     """The registration a model folder holds, or None."""
     path = Path(model_folder) / GEOREGISTRATION
     return read_json(path) if path.is_file() else None
+
+
+def image_dir_of(workspace: Path) -> Path | None:
+    """The image folder the extract stage read (``WORK/extract.json``), if it still exists: where
+    the recording finds the images of a workspace whose extraction ran earlier."""
+    path = Path(workspace) / EXTRACT_STATE
+    try:
+        image_dir = Path(read_json(path)["image_dir"]) if path.exists() else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return image_dir if image_dir is not None and image_dir.is_dir() else None

@@ -24,6 +24,7 @@ from sfm.clustering.options import ClusterOptions
 from sfm.core import progress
 from sfm.io.database import Database
 from sfm.errors import InputError, NoModelError
+from sfm.viz.clustering import log_clusters
 from sfm.viz.recorder import Recorder
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.io.report import update_report
@@ -137,11 +138,7 @@ def _log_and_summarise(clusters_json: dict, out: Path, names: list[str], graph_a
                        t0: float) -> ClusterResult:
     ei, ej, weights = graph_arrays
     clusters = clusters_json["clusters"]
-    node = {n: k for k, n in enumerate(names)}
-    labels = labels_from_clusters([[node[n] for n in c["core"]] for c in clusters], len(names))
-    recorder.stage("cluster")
-    recorder.log_image_graph(names, ei, ej, weights, cluster_of=labels)
-    recorder.log_cluster_graph([len(c["members"]) for c in clusters], [(a, b) for a, b, _ in clusters_json["maxst"]])
+    log_clusters(recorder, clusters_json, names, ei, ej, weights, clusters_json["cut_weight_fraction"])
     return ClusterResult(
         num_images=clusters_json["num_images"],
         num_clusters=len(clusters),

@@ -25,13 +25,17 @@ from sfm.execution.local import LocalExecutor, TaskResult
 from sfm.io.colmap_model import read_model, write_model
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, update_report
-from sfm.io.workspace import CLUSTERS, DATABASE, read_georegistration, read_json, write_georegistration
+from sfm.io.workspace import CLUSTERS, DATABASE, image_dir_of, read_georegistration, read_json, write_georegistration
+from sfm.mapper.growth import Growth
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.payload import MapperInput
 from sfm.stages.georegister import georegister_models
 from sfm.stages.payloads import ClusterPayloads
-from sfm.viz.recorder import Recorder, log_model
+from sfm.viz.mapping import log_cluster_error, log_growth, log_local_model
+from sfm.viz.models import log_final_models
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import map_text
 
 log = logging.getLogger(__name__)
 
@@ -94,21 +98,23 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         ledger.start("map", opts, input_fp, keep={"clusters": {}})
         done = {}
     recorder.stage("map")
+    recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
     per_cluster: list[dict] = [{} for _ in payloads.labels]
     for k, label in enumerate(payloads.labels):
         if label in done:
             per_cluster[k] = {**done[label], "reused": True}
             for m in range(len(done[label]["models"])) if recorder.enabled else ():
-                model = read_model(_folder(workspace, direct, label) / str(m))
-                log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
+                log_local_model(recorder, label, m, read_model(_folder(workspace, direct, label) / str(m)))
     todo = [k for k, label in enumerate(payloads.labels) if label not in done]
     model_names: dict[str, set[str]] = {}  # registered image names of each model written now, by path
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
-    for k, res in _map_clusters(payloads, todo, options.for_model(direct), executor, recorder):
+    max_points = recorder.options.record_points if recorder.enabled else 0
+    unregistered: dict[str, int] = {}
+    for k, res in _map_clusters(payloads, todo, options.for_model(direct), executor, max_points):
         label = payloads.labels[k]
-        models = res.value or []
+        models, growth = res.value or ([], None)
         registrations = georegister_models(models, db_path, options) if direct else None
         written = write_models(models, _folder(workspace, direct, label), registrations)
         model_names.update({w["path"]: {im.name for im in m.images.values()} for w, m in zip(written, models)})
@@ -119,8 +125,11 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
             ledger.save()
         else:
             log.warning("cluster %s failed: %s", label, res.error)
+            log_cluster_error(recorder, label, payloads.names[k], res.error)
+        if growth is not None:
+            unregistered[label] = log_growth(recorder, growth)
         for m, model in enumerate(models):
-            log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
+            log_local_model(recorder, label, m, model, growth_logged=growth is not None)
     flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
     num_images = len({n for names in payloads.names for n in names})  # clusters overlap
@@ -136,6 +145,12 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
             sizes = ", ".join(str(m["registered"]) for m in flat)
             fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction (sizes {sizes})"]
     failed = fields["failed_clusters"] = [c["cluster"] for c in per_cluster if c["error"]]
+    if recorder.enabled:
+        rows = [{**c, "unregistered": unregistered.get(c["cluster"], "?")} for c in per_cluster]
+        recorder.tour("map", map_text(rows, num_images, direct, options))
+        if direct and flat:
+            recorder.stage("final")
+            log_final_models(recorder, [read_model(m["path"]) for m in flat], num_images, options)
     if failed:
         fields["warnings"].append(failed_clusters_warning(failed))
     for warning in fields["warnings"]:
@@ -149,28 +164,34 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
 
 
 def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]:
-    """The ``map`` stage's task: one cluster's payload -> its local models (paper section 3.2:
-    "image clusters are distributed into servers"); safe in any worker process."""
+    """One cluster's payload -> its local models (paper section 3.2: "image clusters are
+    distributed into servers"); safe in any worker process."""
     payload, options = task
     with progress.task(payload.label):
         return reconstruct_incremental(payload, options)
 
 
+def map_cluster_growth(task: tuple[MapperInput, MapperOptions, int]) -> tuple[list[Reconstruction], Growth | None]:
+    """The ``map`` stage's task: :func:`map_cluster`, and with ``max_points > 0`` how the
+    models grew (``sfm.mapper.growth``, at most that many points per step) for the recording,
+    which this process cannot write."""
+    payload, options, max_points = task
+    growth = Growth(payload.label, list(payload.names), max_points) if max_points > 0 else None
+    with progress.task(payload.label):
+        return reconstruct_incremental(payload, options, growth), growth
+
+
 def _map_clusters(payloads: ClusterPayloads, todo: list[int], options: MapperOptions, executor,
-                  recorder: Recorder) -> Iterator[tuple[int, TaskResult]]:
+                  max_points: int) -> Iterator[tuple[int, TaskResult]]:
     """``(cluster index, result)`` of every cluster in ``todo`` as it finishes.  The largest go
     first, so the pool is not left waiting on one big straggler; each payload is read only when
-    a worker is about to take it.  Run in this process, the model is logged as it grows."""
+    a worker is about to take it.  Results are :func:`map_cluster_growth`'s, wherever the
+    cluster ran."""
     order = sorted(todo, key=lambda k: -payloads.sizes[k])
-    task = map_cluster
-    if executor.runs_in_process(len(order)):
-        def task(t):  # not pickled: runs here, and logs the growing model
-            with progress.task(t[0].label):
-                return reconstruct_incremental(*t, recorder)
-    items = ((payloads[k], options) for k in order)
+    items = ((payloads[k], options, max_points) for k in order)
     display = MapProgress({payloads.labels[k]: payloads.sizes[k] for k in order})
     with display, progress.listen(display.event):
-        for res in executor.map(task, items, num_items=len(order), ordered=False, errors="return"):
+        for res in executor.map(map_cluster_growth, items, num_items=len(order), ordered=False, errors="return"):
             display.finished(payloads.labels[order[res.index]])
             yield order[res.index], res
 

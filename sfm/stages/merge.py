@@ -20,9 +20,10 @@ from backend.geometry import rotation_to_quaternion
 from sfm.core import progress
 from sfm.errors import InputError, NoModelError
 from sfm.io.colmap_model import read_model
+from sfm.io.database import Database
 from sfm.io.ledger import Ledger, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, read_report, update_report
-from sfm.io.workspace import DATABASE, MERGE, read_json, write_json_atomic
+from sfm.io.workspace import DATABASE, MERGE, image_dir_of, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components
@@ -31,7 +32,10 @@ from sfm.merge.refinement import refine_with_poses
 from sfm.stages.georegister import georegister_models
 from sfm.stages.map import failed_clusters_warning, registered_names, write_models
 from sfm.stages.payloads import ClusterPayloads
-from sfm.viz.recorder import Recorder, log_model
+from sfm.viz.merging import log_merge
+from sfm.viz.models import log_final_models
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import merge_text, refine_text
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +101,14 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         update_report(workspace, _report_fields(workspace, result.num_local_models, components, result.models,
                                                 [registered_names(Path(m["path"])) for m in result.models]),
                       {"merge": 0.0, "final_ba": 0.0})
+        if recorder.enabled:  # the recording of this run still shows the merged model
+            recorder.tour("merge", f"## 5. Merge\n\nThe merged models in `sparse/` are current (same options, same "
+                                   f"local models): the merge was not run again; `merge.json` holds its plan.")
+            recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+            finals = [read_model(m["path"]) for m in result.models]
+            with Database(workspace / DATABASE, readonly=True) as db:
+                num_images = db.num_images()
+            log_final_models(recorder, finals, num_images, mapper_options)
         return result
     if ledger.record("merge"):
         log.info("merge: runs again: %s", ledger.why_stale("merge", opts, input_fp))
@@ -108,19 +120,17 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         edges = build_cluster_graph(models, options, seed=mapper_options.seed)
     plans = plan_components(models, edges)
     write_json_atomic(workspace / MERGE, merge_json(models, edges, plans))
-    recorder.stage("merge")
-    components = []
-    for c, plan in enumerate(plans):
+    components, all_sims = [], []
+    for plan in plans:
         sims = anchor_from_model(plan, edges)
-        recorder.log_cluster_graph([len(m.model.images) for m in models], [(a, b) for a, b, _ in plan.edges],
-                                   anchor=plan.anchor, entity=f"graph/clusters/merge{c}" if c else "graph/clusters/merge")
-        for node in plan.clusters if recorder.enabled else ():
-            recorder.set_time("merge_layer", plan.layer[node])
-            moved = models[node].model.copy()
-            moved.transform(sims[node])
-            log_model(recorder, f"merge/{models[node].label.replace('/', '_')}", moved)
+        all_sims.append(sims)
         poses, params = merged_poses(models, plan, sims)
         components.append((plan, poses, params))
+    labels = [m.label for m in models]
+    local_points = sum(len(m.model.points3D) for m in models)
+    if recorder.enabled:
+        log_merge(recorder, labels, [m.model for m in models], edges, plans, all_sims)
+        recorder.tour("merge", merge_text(labels, edges, plans, options))
     t_merge = time.perf_counter() - t0
     num_local, num_edges = len(models), len(edges)
     del models, edges  # their Python point objects (one per local point): not needed any more
@@ -140,8 +150,10 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     finals.sort(key=lambda m: -len(m.images))
     registrations = georegister_models(finals, workspace / DATABASE, mapper_options)
     written = write_models(finals, workspace / "sparse", registrations)
-    for k, final in enumerate(finals):
-        log_model(recorder, "world" if k == 0 else f"world/model{k}", final)
+    if recorder.enabled:
+        recorder.tour("refine", refine_text(written, local_points))
+        recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+        log_final_models(recorder, finals, len(payloads.images), mapper_options)
     t_ba = time.perf_counter() - t0 - t_merge
     fields = _report_fields(workspace, num_local, len(plans), written, [{im.name for im in f.images.values()} for f in finals])
     fields["georegistration"] = registrations[0] if registrations else None

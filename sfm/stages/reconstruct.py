@@ -65,8 +65,8 @@ def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOp
     workspace = Path(workspace)
     recorder = recorder or Recorder.disabled()
     if images is not None:
-        run_extract(Path(images), workspace, options.extract, executor)
-        run_match(workspace, options.match, executor)
+        run_extract(Path(images), workspace, options.extract, executor, recorder)
+        run_match(workspace, options.match, executor, recorder)
     run_cluster(workspace, options.cluster, recorder)
     map_result = run_map(workspace, options.mapper, recorder, executor)
     if map_result.direct:  # one cluster: its models are the final ones, nothing to merge
@@ -89,7 +89,7 @@ def reconstruct(images: Path | None, workspace: Path, options: ReconstructOption
             start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
         start_run(workspace, command, fresh=True, image_dir=str(Path(images).resolve()) if images else None)
         rec = options.recording
-        recorder = Recorder(workspace / RECORDING, workspace, spawn=rec.spawn) if rec.recording else Recorder.disabled()
+        recorder = Recorder(workspace / RECORDING, workspace, rec.spawn, rec) if rec.recording else Recorder.disabled()
         try:
             with recorder, make_executor(options.execution) as executor:
                 run_reconstruct(workspace, images, options, executor, recorder)
