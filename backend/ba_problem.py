@@ -7,8 +7,8 @@ the pixel convention is the caller's, as long as principal points and observatio
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -104,6 +104,8 @@ class BAOptions:
         that would only confirm convergence is skipped.  Meant for BAs that later BAs refine
         again; a slow, steady creep (``r`` near 1) is never cut short.
     verbose: log every LM iteration at INFO (otherwise DEBUG).
+    on_iteration: called as ``on_iteration(iteration, cost_before, cost_after)`` after each
+        iteration (a progress display; it must not raise).
     """
 
     loss: str = "huber"
@@ -117,6 +119,7 @@ class BAOptions:
     optimizer: str = "lm"
     predictive_stop: bool = False
     verbose: bool = False
+    on_iteration: Callable[[int, float, float], None] | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)

@@ -128,18 +128,20 @@ def _distortion(spec: CameraModelSpec, params: Array, u: Array, v: Array):
 
 
 def project(model: str, params: Array, points_cam: Array) -> Array:
-    """Pixels (N, 2) of camera-frame points (N, 3).  Points with z <= 0 give NaN."""
+    """Pixels (N, 2) of camera-frame points (N, 3).  Points with z <= 0 give NaN; points so
+    close to the image plane that the distortion overflows give inf (no warning: callers treat
+    non-finite pixels as unusable)."""
     spec = model_spec(model)
     params = np.asarray(params, dtype=np.float64)
     pts = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     z = pts[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(z > 0, pts[:, 0] / z, np.nan)
-        v = np.where(z > 0, pts[:, 1] / z, np.nan)
-    du, dv = _distortion(spec, params, u, v)
     fx, fy = focal_lengths(model, params)
     cx, cy = params[spec.pp_idx[0]], params[spec.pp_idx[1]]
-    return np.stack([fx * (u + du) + cx, fy * (v + dv) + cy], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        u = np.where(z > 0, pts[:, 0] / z, np.nan)
+        v = np.where(z > 0, pts[:, 1] / z, np.nan)
+        du, dv = _distortion(spec, params, u, v)
+        return np.stack([fx * (u + du) + cx, fy * (v + dv) + cy], axis=1)
 
 
 def unproject(model: str, params: Array, pixels: Array, iterations: int = 20) -> Array:

@@ -73,6 +73,8 @@ def _configure(params, graph, values, options: BAOptions, history: list | None, 
         logger.log(level, "%s iteration %d: cost %.6g -> %.6g", name, iteration, before, after)
         if history is not None:
             history.append((before, after))
+        if options.on_iteration is not None:
+            options.on_iteration(iteration, before, after)
         decreases.append((before - after) / before if before > 0 else 0.0)
         if options.predictive_stop and predicted_rest(decreases) < options.relative_tolerance:
             raise PredictedConvergence  # the optimiser holds this iteration's values

@@ -15,7 +15,7 @@ in a cycle):
     3. sfm.features, sfm.matching, sfm.clustering, sfm.evaluation, sfm.synthetic
     4. sfm.mapper
     5. sfm.merge
-    6. sfm.stages
+    6. sfm.stages, sfm.console
     7. sfm.api, sfm.cli
 
 - ``core``: the data model (cameras, images, points with tracks), rigid geometry, the options
@@ -30,6 +30,7 @@ in a cycle):
   merge plan and the refinement of the merged model (section 3.2, Alg. 2).
 - ``stages``: one module per stage (``extract``, ``match``, ``cluster``, ``map``, ``merge``,
   ``reconstruct``, ``extend``, ``synth``, ``demo``), the only code that writes the workspace.
+  ``console``: what a command shows on the terminal and keeps in ``WORK/log.txt``.
 - ``graph`` and ``backend`` (top-level packages beside ``sfm``) are array libraries: the graph
   algorithms (NCut, MaxST expansion, MinST, minimum-height tree) and the numerical optimisation
   (GTSAM bundle adjustment, Sim3 estimation).  They never import ``sfm`` nor each other.
@@ -65,6 +66,25 @@ was read but no model could be made.
 """
 
 from __future__ import annotations
+
+
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml's, the one source); a checkout that
+    is not installed reads it from the pyproject.toml beside the package."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("graphsfm")
+    except PackageNotFoundError:
+        import re
+        from pathlib import Path
+
+        pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+        found = re.search(r'^version\s*=\s*"([^"]+)"', pyproject.read_text(), re.M) if pyproject.is_file() else None
+        return found.group(1) if found else "unknown"
+
+
+__version__ = _version()
 
 _API = ("reconstruct", "extend", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
         "export", "info", "align",

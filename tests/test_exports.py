@@ -76,7 +76,8 @@ def test_undistorted_export_is_what_pycolmap_reads_and_agrees_with_the_original(
     for image in theirs.images.values():
         cam = theirs.cameras[image.camera_id]
         assert cam.model.name == "PINHOLE"
-        assert Image.open(out / "images" / image.name).size == (cam.width, cam.height)
+        with Image.open(out / "images" / image.name) as picture:
+            assert picture.size == (cam.width, cam.height)
     undistorted = read_model(out / "sparse" / "0")
     [orig_cam], [pin] = recon.cameras.values(), undistorted.cameras.values()
     # Every pixel of the undistorted image shows the pattern where the pinhole camera looks.

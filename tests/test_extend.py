@@ -142,7 +142,7 @@ def test_extend_registers_every_new_image_as_accurately_as_one_reconstruct(scene
     # The old images keep their names and ids; the extension went through its own steps.
     old = read_model(scene["base"] / "sparse" / "0")
     assert {i: im.name for i, im in old.images.items()} == {i: model.images[i].name for i in old.images}
-    assert "6 new and 10 old images" in scene["log"] and "extend/result/0" in scene["log"]
+    assert "6 new and 10 old images" in scene["log"] and "6 registered into sparse/0" in scene["log"]
     report = json.loads((scene["extended"] / "report.json").read_text())
     assert report["extension"]["new_registered_in_model"] == NUM_NEW and report["extension"]["own_models"] == 0
     assert report["registered"] == NUM_OLD + NUM_NEW and report["num_models"] == 1

@@ -25,7 +25,7 @@ def test_lund_door_single_cluster(shared_data, tmp_path):
     assert len(models) == 1 and result.num_registered == 12
     assert result.median_rotation_error_deg <= 0.02
     assert result.auc[1] >= 0.97  # 0.975 measured (largest-scale features; 0.959 before)
-    assert report["mean_reprojection_error"] <= 0.6
+    assert report["mean_reprojection_error_px"] <= 0.6
 
 
 def test_lund_door_two_clusters(shared_data, tmp_path):

@@ -42,6 +42,7 @@ from typing import IO
 
 import numpy as np
 
+from sfm.errors import DamagedFileError
 from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 from sfm.io.colmap_files import WRITERS, ModelTables, corrupt_file, read_bin, read_txt
 from backend.geometry import quaternion_to_rotation, rotation_to_quaternion
@@ -66,7 +67,7 @@ def write_model(recon: Reconstruction, path: str | os.PathLike, fmt: str = "bin"
         for name, writer in WRITERS[fmt].items():  # cameras, images, points3D, rigs, frames
             with open_(f"{name}.{fmt}") as f:
                 writer(f, t)
-    logger.info("wrote %s model %s: %d cameras, %d images, %d points, %d observations", fmt,
+    logger.debug("wrote %s model %s: %d cameras, %d images, %d points, %d observations", fmt,
                 path, len(t.cameras), len(t.image_ids), len(t.point_ids), len(t.track))
 
 
@@ -92,9 +93,13 @@ def read_model(path: str | os.PathLike, fmt: str | None = None) -> Reconstructio
     for name in FILES:
         if not (path / f"{name}.{fmt}").is_file():
             raise FileNotFoundError(f"COLMAP model file {path / f'{name}.{fmt}'} is missing")
-    with _no_gc():
-        recon = _from_tables(read_bin(path) if fmt == "bin" else read_txt(path), path)
-    logger.info("read %s model %s: %d cameras, %d images, %d points", fmt, path,
+    try:
+        with _no_gc():
+            recon = _from_tables(read_bin(path) if fmt == "bin" else read_txt(path), path)
+    except ValueError as exc:  # colmap_files.corrupt_file: any parse failure, naming the file
+        raise DamagedFileError(path, str(exc),
+                               "give a complete model, or delete it and rerun the stage that wrote it") from exc
+    logger.debug("read %s model %s: %d cameras, %d images, %d points", fmt, path,
                 len(recon.cameras), len(recon.images), len(recon.points3D))
     return recon
 

@@ -175,3 +175,12 @@ class TwoViewGeometry:
             E=None if self.E is None else np.ascontiguousarray(np.transpose(self.E)),
             H=None if self.H is None else np.linalg.inv(self.H), qvec=qvec, tvec=tvec,
         )  # fmt: skip
+
+
+# graphsfm's own table, beside COLMAP's: the RGB colour of every keypoint (row k of ``data`` is
+# keypoint k's), written in the same transaction as the keypoints.  Made by the first write, so
+# a database without colours has exactly COLMAP's tables.
+KEYPOINT_COLORS = "graphsfm_keypoint_colors"
+KEYPOINT_COLORS_SCHEMA = (f"CREATE TABLE IF NOT EXISTS {KEYPOINT_COLORS} (image_id INTEGER PRIMARY KEY NOT NULL, "
+                          "rows INTEGER NOT NULL, data BLOB, "
+                          "FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)")

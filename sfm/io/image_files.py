@@ -1,4 +1,4 @@
-"""Image files: finding them, reading their EXIF, decoding them to an upright 8-bit grey image.
+"""Image files: finding them, reading their EXIF, decoding them to upright 8-bit grey or RGB.
 
 Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
 
@@ -14,6 +14,8 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
   formula); alpha is dropped; palette images are expanded; 16-bit images are divided by 257
   (65535 -> 255, the same as keeping the high byte, like COLMAP's FreeImage conversion); float
   and 32-bit integer images are stretched from their min to their max.
+- Colour (:func:`read_rgb`, for the colours of the 3D points and the recording's thumbnails): the
+  same decoding and orientation, to 8-bit RGB; grey images give three equal channels.
 - Focal prior from EXIF (:func:`focal_prior_from_exif`), in pixels of the upright image:
   ``FocalLengthIn35mmFilm / 36 * max(W, H)`` (36 mm is the long side of a 35 mm frame; COLMAP
   divides by 35), else ``FocalLength`` (mm) times the sensor's pixels per mm from
@@ -98,14 +100,44 @@ class ImageInfo:
 
 
 def find_images(image_dir: Path) -> list[str]:
-    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted."""
+    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted.
+
+    Symbolic links are followed, but each real folder and file is visited once: a link back to
+    a folder already visited (a loop) or to a file already found is skipped, with one warning
+    line for all of them (the first name in walking order, folders and files sorted, wins)."""
     image_dir = Path(image_dir)
-    names = []
+    names, seen_dirs, seen_files, skipped = [], set(), set(), []
+
+    def key(path: str) -> tuple[int, int] | None:
+        try:
+            st = os.stat(path)
+        except OSError:  # a dangling link
+            return None
+        return st.st_dev, st.st_ino
+
     for root, dirs, files in os.walk(image_dir, followlinks=True):
+        here = key(root)
+        if here in seen_dirs:
+            skipped.append(Path(root).relative_to(image_dir).as_posix() + "/")
+            dirs[:] = []
+            continue
+        seen_dirs.add(here)
         dirs.sort()
-        for f in files:
-            if os.path.splitext(f)[1].lower() in IMAGE_EXTENSIONS:
-                names.append((Path(root) / f).relative_to(image_dir).as_posix())
+        for f in sorted(files):
+            if os.path.splitext(f)[1].lower() not in IMAGE_EXTENSIONS:
+                continue
+            path = os.path.join(root, f)
+            k = key(path)
+            name = Path(path).relative_to(image_dir).as_posix()
+            if k is not None and k in seen_files:
+                skipped.append(name)
+                continue
+            if k is not None:
+                seen_files.add(k)
+            names.append(name)
+    if skipped:
+        logger.warning("%d link(s) in %s lead to a folder or file already found and are skipped: %s", len(skipped),
+                       image_dir, ", ".join(skipped[:3]) + (" ..." if len(skipped) > 3 else ""))
     return sorted(names)
 
 
@@ -285,33 +317,70 @@ def probe_image(path: Path) -> ImageInfo:
 
 def read_gray(data: bytes) -> tuple[np.ndarray, ImageInfo]:
     """Decode an image file's bytes to an upright (EXIF orientation applied) uint8 grey image."""
+    gray, info = _decode(data, _pil_gray, _cv2_gray)
+    if gray.ndim != 2 or gray.shape != (info.height, info.width):
+        raise BadImageError(f"unexpected decoded shape {gray.shape}")
+    return gray, info
+
+
+def read_rgb(data: bytes) -> np.ndarray:
+    """Decode an image file's bytes to an upright uint8 RGB image (H, W, 3), the same pixels
+    :func:`read_gray` gives in grey: alpha dropped, palettes expanded, grey images repeated in
+    the three channels, 16-bit and float images scaled as :func:`read_gray` scales them."""
+    rgb, info = _decode(data, _pil_rgb, _cv2_rgb)
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[:, :, None], 3, axis=2)
+    if rgb.shape != (info.height, info.width, 3):
+        raise BadImageError(f"unexpected decoded shape {rgb.shape}")
+    return rgb
+
+
+def _decode(data: bytes, from_pil, from_cv2) -> tuple[np.ndarray, ImageInfo]:
+    """``from_pil(image)`` upright as uint8, or ``from_cv2(data)`` for files Pillow cannot identify."""
     if not data:
         raise BadImageError("empty file")
     with _no_pixel_limit():
         try:
             im = Image.open(BytesIO(data))
         except UnidentifiedImageError:
-            gray = _cv2_gray(data)
-            if gray is None:
+            arr = from_cv2(data)
+            if arr is None:
                 raise BadImageError("not an image Pillow or OpenCV can read") from None
-            return gray, ImageInfo(int(gray.shape[1]), int(gray.shape[0]))
+            return arr, ImageInfo(int(arr.shape[1]), int(arr.shape[0]))
         except (OSError, ValueError, SyntaxError, EOFError) as exc:
             raise BadImageError(f"cannot read: {exc}") from None
         try:
             info = _info_from_pil(im)
-            decoded = _pil_gray(im)
+            decoded = from_pil(im)
             # some Pillow readers (TIFF) rotate on load and then drop the tag: rotate only once
             still_tagged = _number(_exif_tags(im).get(_ORIENTATION)) == info.orientation
             if info.orientation in _UPRIGHT and still_tagged:
                 decoded = decoded.transpose(_UPRIGHT[info.orientation])
-            gray = _to_uint8(np.asarray(decoded))
+            arr = _to_uint8(np.asarray(decoded))
         except (OSError, ValueError, SyntaxError, EOFError) as exc:  # truncated, corrupt
             raise BadImageError(f"cannot decode: {exc}") from None
         finally:
             im.close()
-    if gray.ndim != 2 or gray.shape != (info.height, info.width):
-        raise BadImageError(f"unexpected decoded shape {gray.shape} for mode {im.mode}")
-    return gray, info
+    return arr, info
+
+
+def _pil_rgb(im: Image.Image) -> Image.Image:
+    """Decode to 'RGB', or to what :func:`_pil_gray` gives for single-channel 16/32-bit and
+    float images (their grey levels are scaled to 8 bits first, then repeated)."""
+    if im.mode in _SIXTEEN_BIT_MODES or im.mode in ("I", "F"):
+        return _pil_gray(im)
+    return im.convert("RGB")
+
+
+def _cv2_rgb(data: bytes) -> np.ndarray | None:
+    """Decode with OpenCV (files Pillow cannot identify) to 8-bit RGB, or None."""
+    try:
+        arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    except cv2.error:
+        return None
+    if arr is None or arr.size == 0:
+        return None
+    return _to_uint8(cv2.cvtColor(arr, cv2.COLOR_BGR2RGB))
 
 
 def mask_path(masks: Path, name: str) -> Path:

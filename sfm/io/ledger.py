@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from sfm.errors import DamagedFileError
 from sfm.io.workspace import read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -147,7 +148,7 @@ class Ledger:
             try:
                 data = read_json(self.path)
                 self.data = data if isinstance(data, dict) else {}
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, DamagedFileError) as exc:
                 log.warning("ignoring unreadable %s (every stage runs again): %s", self.path, exc)
 
     def record(self, stage: str) -> dict | None:

@@ -37,6 +37,7 @@ import numpy as np
 from backend.ba_problem import BAOptions, BAProblem
 from backend.partitioned_ba import bundle_adjust_partitioned
 from backend.track_subset import select_tracks
+from sfm.core import progress
 from sfm.mapper.state import ROW_CHUNK, MapperState
 from sfm.mapper.tracks import work_cuts
 from sfm.mapper.triangulation import refine_points
@@ -93,7 +94,7 @@ class BundleAdjuster:
         if final:
             parts = self._num_parts(tracks)
             self._adjust(free, tracks, self.opts.intrinsics_refinement, 100, tolerance, parts=parts,
-                         loss_scale=loss_scale)
+                         loss_scale=loss_scale, on_iteration=_report_final_ba(len(free)))
             if parts > 1:
                 self.refine_points(tracks)
         else:
@@ -189,7 +190,7 @@ class BundleAdjuster:
 
     def _adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
                 tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
-                predictive: bool = False, loss_scale: float | None = None) -> None:
+                predictive: bool = False, loss_scale: float | None = None, on_iteration=None) -> None:
         """BA of ``tracks`` with the images ``free`` free and the others that see them held;
         ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
         s = self.state
@@ -218,9 +219,19 @@ class BundleAdjuster:
         )
         options = BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale if loss_scale is None else loss_scale,
                             refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance,
-                            optimizer=optimizer, predictive_stop=predictive)
+                            optimizer=optimizer, predictive_stop=predictive, on_iteration=on_iteration)
         result = bundle_adjust_partitioned(problem, parts, options, seed=self.opts.seed)
         s.apply_adjustment(order[:n_free], result.rotations[:n_free], result.translations[:n_free], tracks,
                            result.points, cams if refine != "none" else None, result.camera_params)
         self.last_rms = float(result.final_rms)
         self.last_decrease = float(result.last_decrease)
+
+
+def _report_final_ba(num_images: int):
+    """A final BA's iterations as progress events (``sfm.core.progress``): the iteration and
+    its cost, so a display can show a long BA moving."""
+
+    def on_iteration(iteration: int, before: float, after: float) -> None:
+        progress.report("final_ba", iteration + 1, None, cost=after, images=num_images)
+
+    return on_iteration

@@ -39,5 +39,5 @@ class MapperInput:
     cameras: dict[int, CameraPrior]
     keypoints: list[np.ndarray]
     pairs: list[tuple[int, int, np.ndarray, int]]
-    colors: list[np.ndarray] | None = None  # per image (K_k, 3) uint8 RGB at each keypoint
+    colors: list[np.ndarray] | None = None  # per image (K_k, 3) uint8 RGB at each keypoint, or (0, 3): unknown
     label: str = "C0"

@@ -18,6 +18,7 @@ import numpy as np
 
 from backend.similarity import SimilarityOptions, estimate_similarity
 from graph.merge_plan import MergePlan, plan_merges
+from sfm.core import progress
 from sfm.core.model import INVALID_POINT3D, Reconstruction
 from sfm.merge.options import MergeOptions
 
@@ -58,8 +59,11 @@ def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: i
     cluster graph's edges (Alg. 2, line 1; section 3.2.1, Eq. 1-6, and section 3.2.2, Eq. 10-11)."""
     edges = {}
     sim_opts = SimilarityOptions(min_common_cameras=options.min_common_cameras, max_msd=options.max_msd, seed=seed)
+    num_pairs, done = len(models) * (len(models) - 1) // 2, 0
     for u in range(len(models)):
         for v in range(u + 1, len(models)):
+            done += 1
+            progress.report("model_pairs", done, num_pairs)
             data = common_data(models[u].model, models[v].model)
             if data is None or len(data[0]) < options.min_common_cameras:
                 continue

@@ -21,10 +21,13 @@ from graph.expansion import expand_clusters
 from graph.image_graph import build_image_graph, connected_components
 from graph.partition import cut_weight, labels_from_clusters, partition_graph
 from sfm.clustering.options import ClusterOptions
+from sfm.core import progress
 from sfm.io.database import Database
 from sfm.errors import InputError, NoModelError
+from sfm.viz.clustering import log_clusters
 from sfm.viz.recorder import Recorder
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
+from sfm.io.report import update_report
 from sfm.io.workspace import CLUSTERS, DATABASE, read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -49,6 +52,7 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
     (paper section 3.1, Alg. 1)."""
     recorder = recorder or Recorder.disabled()
     t0 = time.perf_counter()
+    progress.stage("cluster")
     db_path = Path(workspace) / DATABASE
     if not db_path.exists():
         raise InputError(f"no database at {db_path}: run extract and match (or synth) first")
@@ -69,7 +73,9 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
     ledger = Ledger(workspace)
     opts, input_fp = options_record(options), database_fingerprint(db_path)
     if ledger.is_current("cluster", opts, input_fp) and out.exists():
-        return _reuse(out, names, (ei, ej, weights), recorder, t0)
+        result = _reuse(out, names, (ei, ej, weights), recorder, t0)
+        update_report(workspace, {"num_clusters": result.num_clusters}, {"cluster": result.time_s})
+        return result
     if ledger.record("cluster"):
         log.info("cluster: runs again: %s", ledger.why_stale("cluster", opts, input_fp))
     ledger.start("cluster", opts, input_fp)
@@ -114,6 +120,7 @@ def run_cluster(workspace: Path, options: ClusterOptions, recorder: Recorder | N
         log.warning("%d image(s) have no verified pair and are left out: %s", len(isolated),
                     ", ".join(names[i] for i in isolated[:5]) + (" ..." if len(isolated) > 5 else ""))
     result = _log_and_summarise(clusters_json, out, names, (ei, ej, weights), recorder, t0)
+    update_report(workspace, {"num_clusters": result.num_clusters}, {"cluster": result.time_s})
     log.info("cluster: %d images -> %d clusters (sizes %d-%d), %.1f%% of the edge weight cut, %.2f s",
              result.num_images, result.num_clusters, min(result.cluster_sizes), max(result.cluster_sizes),
              100 * cut_fraction, result.time_s)
@@ -131,11 +138,7 @@ def _log_and_summarise(clusters_json: dict, out: Path, names: list[str], graph_a
                        t0: float) -> ClusterResult:
     ei, ej, weights = graph_arrays
     clusters = clusters_json["clusters"]
-    node = {n: k for k, n in enumerate(names)}
-    labels = labels_from_clusters([[node[n] for n in c["core"]] for c in clusters], len(names))
-    recorder.stage("cluster")
-    recorder.log_image_graph(names, ei, ej, weights, cluster_of=labels)
-    recorder.log_cluster_graph([len(c["members"]) for c in clusters], [(a, b) for a, b, _ in clusters_json["maxst"]])
+    log_clusters(recorder, clusters_json, names, ei, ej, weights, clusters_json["cut_weight_fraction"])
     return ClusterResult(
         num_images=clusters_json["num_images"],
         num_clusters=len(clusters),

@@ -34,6 +34,7 @@ the same images and options is skipped.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import shutil
@@ -54,7 +55,8 @@ from sfm.io.colmap_model import read_model, write_model
 from sfm.io.database import Database
 from sfm.io.image_files import find_images
 from sfm.io.ledger import Ledger, changes, fingerprint, options_record
-from sfm.io.workspace import (DATABASE, RECORDING, read_georegistration, read_json, update_report,
+from sfm.io.report import finish_run, model_facts, models_fields, start_run, update_report
+from sfm.io.workspace import (DATABASE, RECORDING, WorkspaceLock, read_georegistration, read_json,
                                write_georegistration, write_json_atomic)
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel
@@ -64,11 +66,15 @@ from sfm.merge.refinement import refine_with_poses
 from sfm.stages.extract import run_extract
 from sfm.stages.extract_writer import extract_options_record
 from sfm.stages.georegister import georegister_models
-from sfm.stages.map import map_clusters, write_models
+from sfm.stages.map import map_clusters, registered_names, write_models
 from sfm.stages.match import match_extension
 from sfm.stages.payloads import ClusterPayloads
 from sfm.stages.reconstruct import ReconstructOptions
-from sfm.viz.recorder import Recorder, log_model
+from sfm.viz.mapping import log_cluster_error, log_growth, log_local_model
+from sfm.viz.merging import log_merge
+from sfm.viz.models import log_model
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import extend_text
 
 log = logging.getLogger(__name__)
 
@@ -227,31 +233,38 @@ def _run_steps(ext: _Extension, images: Path | None) -> dict:
         match_extension(ws, new_names, o.match, ext.executor)
         ext.mark("match")
     t2 = time.perf_counter()
-    ext.times.update({"T_feat": t1 - t0, "T_match": t2 - t1})
+    ext.times.update({"extract": t1 - t0, "match": t2 - t1})
 
     olds = [read_model(folder) for folder in _numbered(ext.sparse)]  # sparse/0, the anchor, first
     clusters = _cluster(ext, olds, new_names)
     t3 = time.perf_counter()
     models = _map(ext, clusters)
     t4 = time.perf_counter()
-    ext.times.update({"T_GC": t3 - t2, "T_SfM": t4 - t3})
+    ext.times.update({"cluster": t3 - t2, "map": t4 - t3})
     if not ext.step_done("result"):
         summary = _merge(ext, olds, models, new_names, clusters)
         ext.rec["result"] = summary
         ext.mark("result", True)
     summary = ext.rec["result"]
     del olds, models
-    fields = {k: summary[k] for k in ("num_models", "registered", "points", "mean_track_length",
-                                     "mean_reprojection_error", "models") if k in summary}
-    fields["extension"] = summary
-    fields["warnings"] = summary["warnings"]
     for w in summary["warnings"]:
         log.warning("%s", w)
-    update_report(ws, fields, {f"extend_{k}": v for k, v in ext.times.items()})
     ext.commit()
+    _report(ext, summary, time.perf_counter() - t0)
     log.info("extend: %d new images, %d registered into sparse/0 (%d registered in all), %d model(s)",
              summary["new_images"], summary["new_registered_in_model"], summary["registered"], summary["num_models"])
     return summary
+
+
+def _report(ext: _Extension, summary: dict, elapsed: float) -> None:
+    """``report.json`` after the commit: the workspace's final models as they now are, the
+    database's counts, the extension's summary with the time of each of its steps."""
+    written = [{"path": str(folder.resolve()), **model.summary()}
+               for folder in _numbered(ext.sparse) for model in [read_model(folder)]]
+    names = [registered_names(Path(m["path"])) for m in written]
+    fields = {**models_fields(written), **model_facts(ext.ws, names), "warnings": summary["warnings"],
+              "extension": {**summary, "times_s": {k: round(v, 3) for k, v in ext.times.items()}}}
+    update_report(ext.ws, fields, {"extend": elapsed})
 
 
 def _cluster(ext: _Extension, olds: list[Reconstruction], new_names: list[str]) -> dict:
@@ -299,11 +312,17 @@ def _map(ext: _Extension, clusters: dict) -> list[LocalModel]:
         payloads = ClusterPayloads(ext.ws / DATABASE, members, fixed_intrinsics=not o.refine_given_intrinsics,
                                    min_inliers=o.min_num_matches, labels=labels)
         todo = [k for k, label in enumerate(labels) if label not in done]
-        ext.recorder.stage("extend")
-        for k, res in map_clusters(payloads, todo, o.for_model(False), ext.executor, ext.recorder):
-            written = write_models(res.value or [], root / labels[k])
+        max_points = ext.recorder.options.record_points if ext.recorder.enabled else 0
+        for k, res in map_clusters(payloads, todo, o.for_model(False), ext.executor, max_points):
+            local_models, growth = res.value or ([], None)
+            written = write_models(local_models, root / labels[k])
             if res.error is not None:
                 log.warning("new cluster %s failed: %s", labels[k], res.error)
+                log_cluster_error(ext.recorder, labels[k], payloads.names[k], res.error)
+            if growth is not None:
+                log_growth(ext.recorder, growth)
+            for m, model in enumerate(local_models):
+                log_local_model(ext.recorder, labels[k], m, model, growth_logged=growth is not None)
             done[labels[k]] = {"images": payloads.sizes[k], "models": len(written), "error": res.error}
             ext.ledger.save()
     models = []
@@ -324,9 +343,6 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     num_old = len(olds)
     edges, plans = plan_extension(nodes, o.merge, seed=o.mapper.seed)
     main = plans[0]
-    ext.recorder.stage("extend")
-    ext.recorder.log_cluster_graph([len(n.model.images) for n in nodes], [(a, b) for a, b, _ in main.edges],
-                                   anchor=ANCHOR, entity="graph/clusters/extend")
     new_set = set(new_names)
     untouched = [p.anchor for p in plans[1:] if len(p.clusters) == 1 and p.anchor < num_old]
     components = []  # (plan, poses, params) of the other plans with a new model: models of their own
@@ -342,10 +358,7 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     extended = None
     if merged_in:
         poses, params, sims = extended_poses(nodes, main, edges)
-        for n in merged_in if ext.recorder.enabled else ():
-            moved = nodes[n].model.copy()
-            moved.transform(sims[n])
-            log_model(ext.recorder, f"extend/{nodes[n].label.replace('/', '_')}", moved)
+        log_merge(ext.recorder, [n.label for n in nodes], [n.model for n in nodes], edges, [main], [sims], stage="extend")
         anchor_names = {im.name for im in olds[0].images.values()}
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
                                    min_inliers=mapper.min_num_matches, labels=["extended"])
@@ -381,8 +394,9 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     for k, ((model, _), registration) in enumerate(zip(others, registrations), start=first_own):
         write_model(model, ext.result / str(k))
         write_georegistration(ext.result / str(k), registration)
-    if extended is not None:
-        log_model(ext.recorder, "world", extended)
+    if extended is not None and ext.recorder.enabled:
+        ext.recorder.stage("extend")
+        log_model(ext.recorder, "world", extended, max_points=ext.recorder.options.record_points)
     num_models = first_own + len(others)
     anchor = olds[0]
     own = [(k, m) for k, (m, has_old) in enumerate(others, start=first_own) if not has_old]
@@ -415,7 +429,7 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
         "time_merge_s": round(t_merge, 3), "time_ba_s": round(t_ba, 3),
         "warnings": warnings,
     }
-    ext.times.update({"T_merge": t_merge, "T_BA": t_ba})
+    ext.times.update({"merge": t_merge, "final_ba": t_ba})
     write_json_atomic(ext.dir / "merge.json", {
         "nodes": [{"id": k, "label": n.label, "images": len(n.model.images)} for k, n in enumerate(nodes)],
         "edges": [{"a": u, "b": v, "msd": e["msd"], "common_cameras": e["common_cameras"], "used": e["used"]}
@@ -425,17 +439,28 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     })
     if extended is None and not others:
         log.warning("extend: no new image could be added to any model")
+    ext.recorder.tour("extend", extend_text(summary))
     return summary
 
 
-def extend(workspace: Path, images: Path | None, options: ExtendRunOptions) -> dict:
-    """The whole extension as the command line starts it: the executor and the recording
-    (``WORK/recording-extend.rrd``) opened, :func:`run_extend`, both closed."""
+def extend(workspace: Path, images: Path | None, options: ExtendRunOptions, command: str | None = None) -> dict:
+    """The whole extension as the command line starts it: the workspace taken
+    (``WORK/run.lock``), the executor and the recording (``WORK/recording-extend.rrd``) opened,
+    :func:`run_extend`, both closed; ``report.json`` says how it ended."""
     workspace = Path(workspace)
-    if options.execution.executor == "local":
-        start_pool_server()
-    rec = options.recording
-    recorder = (Recorder(workspace / RECORDING.replace(".rrd", "-extend.rrd"), workspace, spawn=rec.spawn)
-                if rec.recording else Recorder.disabled())
-    with recorder, make_executor(options.execution) as executor:
-        return run_extend(workspace, images, options, executor, recorder)
+    with WorkspaceLock(workspace, command or "sfm.extend"):
+        if options.execution.executor == "local":
+            start_pool_server()
+        start_run(workspace, command, fresh=False)
+        rec = options.recording
+        recorder = (Recorder(workspace / RECORDING.replace(".rrd", "-extend.rrd"), workspace, rec.spawn, rec)
+                    if rec.recording else Recorder.disabled())
+        try:
+            with recorder, make_executor(options.execution) as executor:
+                summary = run_extend(workspace, images, options, executor, recorder)
+        except BaseException:
+            with contextlib.suppress(Exception):  # the error that stopped the run is the one to report
+                finish_run(workspace, "failed")
+            raise
+        finish_run(workspace, "finished")
+        return summary

@@ -4,12 +4,14 @@
 each image as soon as its worker returns it. Each image is written (camera if new, image row,
 keypoints, descriptors) in one transaction, so an interrupted run loses only the images in
 flight, and a resumed run skips the images that already have keypoints in ``WORK/database.db``.
+The colour of each keypoint (``sfm.features.colors``) goes into the same transaction.
 ``WORK/extract.json`` (written atomically) maps each shared camera's group key to its camera id,
 so a resumed run puts new images on the cameras it made before, and lists the cameras whose
 intrinsics the ``--intrinsics`` file gave (``given_intrinsics``: the mapper holds them fixed,
 :func:`given_camera_ids`); the options a run used are
 compared in the stage ledger, ``WORK/stages.json`` (:func:`extract_ledger`), which drops the
-database when they changed.  COLMAP's tables hold nothing extra.
+database when they changed.  COLMAP's tables hold nothing extra (the colours have a table of
+their own).
 """
 
 from __future__ import annotations
@@ -142,8 +144,9 @@ class ExtractWriter:
         return camera_id
 
     def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray,
-              gps: tuple[float, float, float] | None = None):
-        """One image's camera, row, keypoints, descriptors and EXIF GPS (a WGS84 pose prior)."""
+              colors: np.ndarray | None = None, gps: tuple[float, float, float] | None = None):
+        """One image (its camera if new, its row, keypoints, descriptors, keypoint colours and EXIF
+        GPS as a WGS84 pose prior) in one transaction."""
         with self.db.transaction():
             camera_id = self._camera_id(name, spec)
             image_id = self.image_ids.get(name)
@@ -153,6 +156,8 @@ class ExtractWriter:
                 self.db.write_pose_prior(image_id, camera_id, gps)
             self.db.write_keypoints(image_id, keypoints)
             self.db.write_descriptors(image_id, descriptors)
+            if colors is not None:
+                self.db.write_keypoint_colors(image_id, colors)
         self.image_ids[name] = image_id
         self.image_cameras[name] = camera_id
 

@@ -19,18 +19,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
-
+from sfm.core import progress
 from sfm.core.geodesy import enu_from_wgs84
 from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor
 from sfm.io.database import Database
 from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.io.ledger import options_record, resume_or_restart
+from sfm.io.report import update_report
 from sfm.matching.options import MatchOptions
 from sfm.matching.pair_matcher import PairBatch, close_matchers, match_batch
 from sfm.matching.pairs import extension_pairs, select_pairs
 from sfm.matching.verification import to_colmap_pixels
+from sfm.io.database_schema import TwoViewConfig
+from sfm.io.workspace import image_dir_of
+from sfm.viz.frontend import log_image_graph, log_match_pair, pair_sample
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import match_text
 
 logger = logging.getLogger(__name__)
 
@@ -111,14 +116,17 @@ def _gps_positions(db: Database, image_ids: list[int]):
     return lla
 
 
-def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None) -> MatchResult:
-    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring):
-    the image graph's edges and weights (paper section 3.1.1).
+def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None,
+              recorder: Recorder | None = None) -> MatchResult:
+    """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring).
 
     ``executor``: where the pairs are matched (``sfm.execution``; default: a local pool of one
-    process per core); only this process writes the database."""
+    process per core); only this process writes the database.  ``recorder``: the image graph,
+    the inlier matches of a sample of pairs and the stage's text go to it."""
     start = time.perf_counter()
+    progress.stage("match")
     executor = executor or LocalExecutor()
+    recorder = recorder or Recorder.disabled()
     db_path = Path(workspace) / "database.db"
     if not db_path.is_file():
         raise InputError(f"no database at {db_path}: run `graphsfm extract` first")
@@ -147,7 +155,12 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         camera_of = {i: r.camera_id for i, r in images.items()}
         times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
+        if recorder.enabled:
+            log_match(recorder, db, options, len(pairs), workspace)
     ledger.finish("match", "")
+    update_report(workspace, {}, {"match": time.perf_counter() - start})
+    logger.info("match: %d pairs matched now, %d verified in all (median %d inliers), %.1f s", len(todo),
+                len(inliers), int(np.median(inliers)) if len(inliers) else 0, time.perf_counter() - start)
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
         num_pairs_processed=len(todo), num_verified=len(inliers),
@@ -214,7 +227,7 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
     try:
         results = executor.map(match_batch, tasks, num_items=-(-len(todo) // size))
         pairs = (r for task in results for r in task.value)
-        for id1, id2, matches, geometry, tm, tv in tqdm(pairs, total=len(todo), desc="match", unit="pair"):
+        for id1, id2, matches, geometry, tm, tv in progress.bar(pairs, total=len(todo), desc="match", unit="pair"):
             batch.append((id1, id2, matches, geometry))
             t_match, t_verify = t_match + tm, t_verify + tv
             if len(batch) >= BATCH_PAIRS:
@@ -226,3 +239,31 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
             flush()  # keep what was finished, also when interrupted
         close_matchers()  # a matcher that ran in this process holds a read connection
     return t_match, t_verify
+
+
+def log_match(recorder: Recorder, db: Database, options: MatchOptions, num_pairs: int, workspace: Path) -> None:
+    """The image graph of paper section 3.1.1 (``graph/images``), the inlier matches of
+    ``record_pairs`` pairs spread from the most to the fewest inliers (``matches/...``), and the
+    stage's text of the tour."""
+    recorder.stage("match")
+    recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+    images = db.read_images()
+    i, j, w = db.verified_pairs(options.min_num_inliers)
+    ids = sorted(images)  # the cluster stage's node order: the same layout
+    node = {image_id: k for k, image_id in enumerate(ids)}
+    names = [images[k].name for k in ids]
+    log_image_graph(recorder, names, np.array([node[int(a)] for a in i], dtype=np.int64),
+                    np.array([node[int(b)] for b in j], dtype=np.int64), w)
+    drawn = 0
+    for k in pair_sample(w, recorder.options.record_pairs).tolist():
+        a, b = int(i[k]), int(j[k])
+        thumb_a, thumb_b = recorder.thumbnail(images[a].name), recorder.thumbnail(images[b].name)
+        geometry = db.read_two_view_geometry(a, b)
+        if thumb_a is None or thumb_b is None or geometry is None:
+            continue
+        m = np.asarray(geometry.inlier_matches, dtype=np.int64)
+        kp_a, kp_b = db.read_keypoints(a), db.read_keypoints(b)
+        log_match_pair(recorder, images[a].name, images[b].name, thumb_a, thumb_b, kp_a[m[:, 0], :2],
+                       kp_b[m[:, 1], :2], TwoViewConfig(int(geometry.config)).name.lower())
+        drawn += 1
+    recorder.tour("match", match_text(len(images), num_pairs, len(w), w, options.min_num_inliers, options, drawn))

@@ -20,7 +20,8 @@ from sfm.stages.extract_writer import given_camera_ids
 
 class ClusterPayloads(Sequence[MapperInput]):
     """One :class:`MapperInput` per cluster (``None``: all images), read from the database
-    when indexed: each holds its cluster's keypoints and verified matches, so building them
+    when indexed: each holds its cluster's keypoints (and their colours, when the database
+    has them) and verified matches, so building them
     one at a time keeps memory to the clusters in flight.  Images are named, everything else
     is arrays: a payload needs nothing from the caller's disk.  ``labels``, ``names`` and
     ``sizes`` need no read.  With ``fixed_intrinsics`` the cameras the ``--intrinsics`` file gave
@@ -51,6 +52,7 @@ class ClusterPayloads(Sequence[MapperInput]):
             geoms = db.read_two_view_geometries(min_config=2, min_inliers=self.min_inliers,
                                                 image_ids=None if self.whole else ids)
             keypoints = db.read_all_keypoints(ids)
+            colors = db.read_keypoint_colors(ids)
         local = {iid: n for n, iid in enumerate(ids)}
         cameras = {
             c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
@@ -64,7 +66,11 @@ class ClusterPayloads(Sequence[MapperInput]):
             image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],
             cameras=cameras, keypoints=[_with_scale(keypoints.pop(i, np.zeros((0, 2)))) for i in ids],
             pairs=pairs, label=self.labels[k],
+            colors=[colors.pop(i, _NO_COLORS) for i in ids] if colors else None,
         )
+
+
+_NO_COLORS = np.zeros((0, 3), np.uint8)  # an image whose keypoint colours are not in the database
 
 
 def _with_scale(keypoints: np.ndarray) -> np.ndarray:
