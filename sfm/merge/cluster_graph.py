@@ -86,3 +86,35 @@ def plan_components(models: list[LocalModel], edges: dict) -> list[MergePlan]:
     sizes = {k: len(m.model.images) for k, m in enumerate(models)}
     weights = {(u, v): e["msd"] for (u, v), e in edges.items() if e["used"]}
     return plan_merges(list(range(len(models))), sizes, weights)
+
+
+def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> list[dict]:
+    """Why each merge component other than the first (Alg. 2 merges only along cluster-graph
+    edges) joins no other: the pair of local models, one inside and one outside, sharing the
+    most registered images, and what stopped their edge (no common image, fewer than
+    ``min_common_cameras``, no similarity found, or its MSD above ``max_msd``)."""
+    names = [{im.name for im in m.model.images.values()} for m in models]
+    found = []
+    for plan in plans[1:]:
+        inside = set(plan.clusters)
+        outside = [v for v in range(len(models)) if v not in inside]
+        best = max(((len(names[u] & names[v]), u, v) for u in sorted(inside) for v in outside), default=None)
+        entry = {"models": [models[u].label for u in sorted(inside)]}
+        if best is None:
+            found.append({**entry, "nearest": None, "common_images": 0, "reason": "no other local model"})
+            continue
+        common, u, v = best
+        edge = edges.get((min(u, v), max(u, v)))
+        if common == 0:
+            reason = "shares no registered image with any other local model"
+        elif common < options.min_common_cameras:
+            reason = (f"{models[u].label} and {models[v].label} share {common} registered images, fewer than "
+                      f"--min-common-cameras {options.min_common_cameras}")
+        elif edge is None:
+            reason = (f"{models[u].label} and {models[v].label} share {common} registered images but no "
+                      f"similarity fits them (RANSAC found no consensus)")
+        else:
+            reason = (f"{models[u].label} and {models[v].label} align with an MSD of {edge['msd']:.3g}, above "
+                      f"--max-msd {options.max_msd:g}")
+        found.append({**entry, "nearest": models[v].label, "common_images": common, "reason": reason})
+    return found

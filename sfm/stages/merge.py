@@ -26,7 +26,7 @@ from sfm.io.report import model_facts, models_fields, read_report, update_report
 from sfm.io.workspace import DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
 from sfm.merge.alignment import anchor_from_model, merged_poses
-from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components
+from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components, unjoined_parts
 from sfm.merge.options import MergeOptions
 from sfm.merge.refinement import refine_with_poses
 from sfm.stages.georegister import georegister_models
@@ -52,9 +52,9 @@ def load_local_models(workspace: Path) -> list[LocalModel]:
     return out
 
 
-def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan]) -> dict:
-    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges, and each merge
-    component's MinST, anchor and layers."""
+def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> dict:
+    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges, each merge
+    component's MinST, anchor and layers, and why the components after the first stayed apart."""
     return {
         "nodes": [{"id": k, "label": m.label, "images": len(m.model.images), "points": len(m.model.points3D)} for k, m in enumerate(models)],
         "edges": [
@@ -69,6 +69,7 @@ def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan]) ->
              "path": {str(k): list(v) for k, v in p.path.items()}, "num_layers": p.num_layers}
             for p in plans
         ],
+        "unjoined": unjoined_parts(models, edges, plans, options),
     }
 
 
@@ -119,7 +120,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     with progress.bar_for("model_pairs", "merge: align local models", "pair"):
         edges = build_cluster_graph(models, options, seed=mapper_options.seed)
     plans = plan_components(models, edges)
-    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans))
+    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options))
     components, all_sims = [], []
     for plan in plans:
         sims = anchor_from_model(plan, edges)
@@ -177,6 +178,11 @@ def _report_fields(workspace: Path, num_local: int, num_components: int, written
     if len(written) > 1:
         msg = (f"{len(written)} models: the scene splits into {len(written)} parts that share no aligned cluster pair "
                f"(sizes {', '.join(str(m['registered']) for m in written)})")
+        log.warning("%s", msg)
+        fields["warnings"].append(msg)
+    unjoined = read_json(workspace / MERGE).get("unjoined", []) if (workspace / MERGE).exists() else []
+    for part in unjoined:  # why each part the merge could not join stayed apart
+        msg = f"local models {', '.join(part['models'])} join no other: {part['reason']}"
         log.warning("%s", msg)
         fields["warnings"].append(msg)
     return fields
