@@ -345,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="render a small scene, reconstruct it with >= 3 clusters, print its accuracy")
     p.add_argument("workspace", help="output folder (new)")
     p.add_argument("--images", type=int, default=30, help="rendered views (default 30)")
-    p.add_argument("--max-cluster-size", type=int, default=12, help="cluster size bound (default 12: 3 clusters)")
+    p.add_argument("--max-cluster-size", type=int, default=12, help="the most images in a cluster (default 12: several clusters of the 30 views)")
     p.add_argument("--workers", type=int, default=0, help="parallel cluster workers (default 0: all cores)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scene and of every stage (default 0)")
     p.set_defaults(func=cmd_demo)

@@ -29,7 +29,7 @@ from sfm.merge.cluster_graph import (
 )
 from sfm.viz.recorder import Recorder, log_model
 from sfm.io.ledger import Ledger, fingerprint, options_record
-from sfm.io.workspace import DATABASE, MERGE, REPORT, read_json, update_report, write_json_atomic
+from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, REPORT, read_json, update_report, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,8 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     if written:
         fields.update({k: written[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
     failed = read_json(workspace / REPORT).get("failed_clusters", []) if (workspace / REPORT).exists() else []
-    fields["warnings"] = [failed_clusters_warning(failed)] if failed else []  # map's still hold, nothing else
+    clusters_warnings = read_json(workspace / CLUSTERS).get("warnings", []) if (workspace / CLUSTERS).exists() else []
+    fields["warnings"] = clusters_warnings + ([failed_clusters_warning(failed)] if failed else [])  # map's still hold
     if len(finals) > 1:
         msg = (f"{len(finals)} models: the scene splits into {len(finals)} parts that share no aligned cluster pair "
                f"(sizes {', '.join(str(len(f.images)) for f in finals)})")
