@@ -6,11 +6,11 @@ small enough to leave the expansion room and expands the cores along the maximum
 of the cluster graph (and a backup forest for the merge), never beyond ``max_cluster_size``
 images, until every cluster's completeness reaches ``completeness_ratio`` (Algorithm 1;
 ``graph.clustering``, ``graph.partition`` and ``graph.expansion`` do the work on arrays).  A
-connected component that fits in ``max_cluster_size`` is one cluster.  A cluster the graph cannot bring to the
-completeness within the bound, and a MaxST edge with fewer than ``min_overlap`` common images,
-are logged as warnings naming them and why, and listed in ``clusters.json`` and the report.
-Images without any verified pair cannot be reconstructed and are listed as isolated, not
-clustered.
+connected component that fits in ``max_cluster_size`` is one cluster.  A cluster the graph
+cannot bring to the completeness within the bound, and a MaxST edge with fewer than
+``min_overlap`` common images, are logged as warnings naming them and why, and listed in
+``clusters.json`` and the report.  Images without any verified pair cannot be reconstructed
+and are listed as isolated, not clustered.
 """
 
 from __future__ import annotations
@@ -42,10 +42,10 @@ class ClusterOptions:
 
     max_cluster_size: S_max, the most images in a cluster AFTER expansion, shared images
         included: what one local SfM holds in memory. The NCut cores are cut to at most
-        max(ceil(S_max / 2), S_max - max(ceil(C S_max / 2), ceil(min_overlap / 2))) images so that the
-        expansion has room, and a core whose cluster fills up below C is cut again to at most
-        max(ceil(S_max / 2), (1 - C) S_max); a connected scene of at most S_max images is one
-        cluster.
+        max(ceil(S_max / 2), S_max - max(ceil(C S_max / 2), ceil(min_overlap / 2))) images so
+        that the expansion has room, and a core whose cluster fills up below C is cut again to
+        at most max(ceil(S_max / 2), (1 - C) S_max); a connected scene of at most S_max images
+        is one cluster.
     completeness_ratio: C, the completeness eta(i) = sum_j |Ci ∩ Cj| / |Ci| that expansion
         aims for in every cluster; a cluster that reaches it takes no more images.
     max_overlap: O_max, the most images added between one pair of clusters (their lost image
