@@ -11,7 +11,7 @@ from sfm.viz.recorder import Recorder
 from sfm.viz.tour import cluster_text
 
 MAXST_COLOR = (255, 200, 0)  # Alg. 1 line 5: the MaxST's edges
-EXTRA_COLOR = (120, 170, 255)  # Alg. 1 lines 11-14: random edges added for completeness
+EXTRA_COLOR = (120, 170, 255)  # Alg. 1 lines 10-12: random edges added for completeness
 
 
 def log_clusters(recorder: Recorder, data: dict, names: list[str], ei: np.ndarray, ej: np.ndarray,
@@ -20,7 +20,7 @@ def log_clusters(recorder: Recorder, data: dict, names: list[str], ei: np.ndarra
     colour of each other cluster it was copied into (its overlap), the edges the cut removed in
     grey; ``graph/clusters``: the cluster graph (Alg. 1 lines 3-5: one node per cluster, an edge
     per pair of cores with lost image edges, labelled with their number), the MaxST's edges
-    thick and gold, the random edges added for completeness (lines 11-14) blue, each cluster
+    thick and gold, the random edges added for completeness (lines 10-12) blue, each cluster
     labelled with its sizes and completeness; and the stage's text of the tour."""
     if not recorder.enabled:
         return

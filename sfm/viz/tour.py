@@ -3,12 +3,11 @@ part of the paper it implements (section, equation, Algorithm line), what happen
 in numbers, and where to look in the recording.  The stages log it with
 :meth:`sfm.viz.recorder.Recorder.tour`; these functions only write text.
 
-Paper references follow ``/work/shared/paper/graphsfm_paper.tex`` numbered in order: Eq. 1-2
-relative scale, Eq. 3-6 rotation and translation, Eq. 7-9 the MinST as the most probable
-spanning tree, Eq. 10 the MSE and Eq. 11 the MSD; Alg. 1 (image clustering) lines 1-2 the
-partition, 3-5 lost edges, cluster graph and MaxST, 6-10 expansion along the MaxST, 11-14
-random edges until completeness; Alg. 2 (merging) lines 1-2 the cluster graph and its MinST,
-3-14 the minimum height tree.
+Paper references follow the paper's numbering (``help(sfm)``): Eq. 1-2 relative scale, Eq. 3-6
+rotation and translation, Eq. 7-9 the MinST as the most probable spanning tree, Eq. 10 the MSE
+and Eq. 11 the MSD; Alg. 1 (image clustering) lines 1-2 the partition, 3-5 lost edges, cluster
+graph and MaxST, 6-9 expansion along the MaxST, 10-12 random edges until completeness; Alg. 2
+(merging) lines 1-2 the cluster graph and its MinST, 3-12 the minimum height tree.
 """
 
 from __future__ import annotations
@@ -102,8 +101,8 @@ which the merge needs to align their models.
 **Paper.** Section 3.1, Alg. 1: lines 1-2 the number of clusters K and the NCut partition;
 lines 3-5 the lost edges (image edges between two cores), the cluster graph they weigh (one node
 per core, an edge's weight = its number of lost image edges) and its maximum spanning tree
-(Kruskal); lines 6-10 the strongest lost edges of each MaxST edge added to both clusters (at most
-O_max = {data['max_overlap']} per pair); lines 11-14 random non-tree cluster edges added the same way
+(Kruskal); lines 6-9 the strongest lost edges of each MaxST edge added to both clusters (at most
+O_max = {data['max_overlap']} per pair); lines 10-12 random non-tree cluster edges added the same way
 until every cluster's completeness (its images shared with other clusters / its size) reaches
 C = {data['completeness_ratio']}.
 
@@ -183,7 +182,7 @@ model along it into the frame of one anchor model.
 then rotation and translation by RANSAC. Section 3.2.2: the cluster graph (Alg. 2 line 1), each
 edge weighted by the MSD (Eq. 11: of the two directions' errors of the transformed common 3D
 points, Eq. 10, the larger); its minimum spanning tree (Alg. 2 line 2) maximises the probability that every
-alignment is right (Eq. 7-9). Section 3.2.3, Alg. 2 lines 3-14: leaves are peeled layer by layer,
+alignment is right (Eq. 7-9). Section 3.2.3, Alg. 2 lines 3-12: leaves are peeled layer by layer,
 each merging into its neighbour, and the last node (or the larger of the last two) is the anchor:
 the centre of a minimum height tree, so no model's transform is chained along a long path.
 
