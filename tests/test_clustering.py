@@ -84,7 +84,7 @@ def test_clusters_that_cannot_reach_c_are_named_in_the_log_clusters_json_and_rep
     run_synth(tmp_path, SynthOptions(scene="aerial", num_images=300, observations_per_image=500, seed=0))
     # C = 1 with at most 5 images added between two clusters: some cannot get there
     with caplog.at_level(logging.WARNING, logger="sfm.stages.cluster"):
-        result = run_cluster(tmp_path, ClusterOptions(max_cluster_size=40, completeness_ratio=1.0, max_overlap=5))
+        result = run_cluster(tmp_path, ClusterOptions(max_cluster_size=40, completeness=1.0, max_overlap=5))
     data, _ = _check_clusters(tmp_path, 40, 1.0, 300)
     below = [c for c in data["clusters"] if c["below_completeness"]]
     assert below and all(c["size"] < 40 and c["below_completeness"] == "max_overlap" for c in below)

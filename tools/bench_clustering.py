@@ -1,7 +1,7 @@
 """Two clusterings side by side on the same databases: the whole run from cluster to merged model.
 
     python tools/bench_clustering.py --out DIR [--sets demo lund_door temple_ring aerial500 ...]
-                                     [--baseline 8997df7] [--seeds 0 1 2] [--repeat 1] [--workers 2]
+                                     [--baseline COMMIT] [--seeds 0 1 2] [--repeat 1] [--workers 2]
 
 For each set, the database is made once (``DIR/data/<set>``, by this checkout's code): the demo's
 rendered scene (30 views, seed 0) and the real ``lund_door`` and ``temple_ring`` photos (from
@@ -45,7 +45,8 @@ SETS = {  # name: (max cluster size, how the database is made)
     "aerial1000": 100,
     "aerial2000": 100,
 }
-SECTION = "bench_clustering"
+SECTION = "bench:clustering"
+BASELINE = "07cbda0"  # main before the bounded clustering: the unbounded expansion
 
 
 def git(*args: str, cwd: Path = ROOT) -> str:
@@ -97,16 +98,20 @@ def make_data(out: Path, name: str, data_root: Path) -> tuple[Path, Path]:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     if name.startswith("aerial"):
-        from sfm.synthetic.scenes import SynthOptions, run_synth
+        from sfm.stages.synth import run_synth
+        from sfm.synthetic.options import SynthOptions
 
         shutil.rmtree(folder)
         run_synth(folder, SynthOptions(scene="aerial", num_images=int(name[len("aerial"):]), outlier_ratio=0.2, seed=0))
     else:
-        from sfm.stages.extract import ExtractOptions, run_extract
-        from sfm.stages.match import MatchOptions, run_match
+        from sfm.features.options import ExtractOptions
+        from sfm.matching.options import MatchOptions
+        from sfm.stages.extract import run_extract
+        from sfm.stages.match import run_match
 
         if name == "demo":  # the scene of `graphsfm demo`: its default 30 views and seed 0
-            from sfm.synthetic.rendered import RenderOptions, write_rendered_scene
+            from sfm.synthetic.options import RenderOptions
+            from sfm.synthetic.rendered import write_rendered_scene
 
             images = Path(write_rendered_scene(folder / "scene", RenderOptions(num_images=30, seed=0))["image_dir"])
         else:
@@ -122,12 +127,14 @@ def child(work: Path, db: Path, gt: Path, s_max: int, workers: int, seed: int) -
     merge a copy of ``db`` in ``work``; writes ``work/result.json``."""
     import logging
 
-    from sfm.evaluation.metrics import evaluate, read_gt_table
+    from sfm.clustering.options import ClusterOptions
+    from sfm.evaluation.ground_truth import read_gt_table
+    from sfm.evaluation.metrics import evaluate
     from sfm.execution.local import LocalExecutor
     from sfm.io.colmap_model import read_model
-    from sfm.mapper.payload import MapperOptions
-    from sfm.merge.cluster_graph import MergeOptions
-    from sfm.stages.cluster import ClusterOptions, run_cluster
+    from sfm.mapper.options import MapperOptions
+    from sfm.merge.options import MergeOptions
+    from sfm.stages.cluster import run_cluster
     from sfm.stages.map import run_map
     from sfm.stages.merge import run_merge
 
@@ -275,12 +282,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, help="folder for code, data and runs")
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
-    parser.add_argument("--baseline", default="8997df7", help="commit of the other variant (default 8997df7)")
+    parser.add_argument("--baseline", default=BASELINE, help=f"commit of the other variant (default {BASELINE}: "
+                        "the clustering before the size bound)")
     parser.add_argument("--repeat", type=int, default=1, help="runs of each variant per set and seed")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0],
                         help="seeds of the clustering, the mappers and the merge (default 0)")
     parser.add_argument("--workers", type=int, default=2, help="local map workers (default 2)")
-    parser.add_argument("--data", type=Path, default=Path("/work/shared/data"), help="folder of the real sets")
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="folder of the real sets")
     parser.add_argument("--no-benchmarks-md", action="store_true", help="do not touch tools/BENCHMARKS.md")
     parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
