@@ -122,9 +122,10 @@ def make_data(out: Path, name: str, data_root: Path) -> tuple[Path, Path]:
     return folder / "database.db", gt
 
 
-def child(work: Path, db: Path, gt: Path, s_max: int, workers: int, seed: int) -> int:
+def child(work: Path, db: Path, gt: Path, s_max: int, workers: int, seed: int, keep: bool = False) -> int:
     """One variant on one set (runs with the variant's code first on sys.path): cluster, map and
-    merge a copy of ``db`` in ``work``; writes ``work/result.json``."""
+    merge a copy of ``db`` in ``work``; writes ``work/result.json`` (``keep``: the workspace's
+    database and local models stay, to merge them again)."""
     import logging
 
     from sfm.clustering.options import ClusterOptions
@@ -178,15 +179,16 @@ def child(work: Path, db: Path, gt: Path, s_max: int, workers: int, seed: int) -
     result.update({"registered": len(model.images), "med_rot_deg": round(ev.median_rotation_error_deg, 4),
                    "auc@1": round(ev.auc[1], 4), "auc@5": round(ev.auc[5], 4)})
     (work / "result.json").write_text(json.dumps(result))
-    for sub in ("database.db", "clusters"):  # the large files; the final model and JSONs stay
+    for sub in () if keep else ("database.db", "clusters"):  # the large files; the final model and JSONs stay
         p = work / sub
         shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
     return 0
 
 
-def run_variant(code: Path, work: Path, db: Path, gt: Path, s_max: int, workers: int, seed: int) -> dict | None:
+def run_variant(code: Path, work: Path, db: Path, gt: Path, s_max: int, workers: int, seed: int,
+                keep: bool = False) -> dict | None:
     argv = [sys.executable, str(Path(__file__).resolve()), "--child", str(work), str(db), str(gt), str(s_max),
-            str(workers), str(seed)]
+            str(workers), str(seed), str(int(keep))]
     env = {**os.environ, "PYTHONPATH": str(code)}
     t0 = time.perf_counter()
     code_rc = subprocess.run(argv, cwd=code, env=env).returncode
@@ -290,11 +292,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="local map workers (default 2)")
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="folder of the real sets")
     parser.add_argument("--no-benchmarks-md", action="store_true", help="do not touch tools/BENCHMARKS.md")
-    parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
+    parser.add_argument("--keep", action="store_true", help="keep each run's database and local models")
+    parser.add_argument("--child", nargs=7, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        work, db, gt, s_max, workers, seed = args.child
-        return child(Path(work), Path(db), Path(gt), int(s_max), int(workers), int(seed))
+        work, db, gt, s_max, workers, seed, keep = args.child
+        return child(Path(work), Path(db), Path(gt), int(s_max), int(workers), int(seed), keep == "1")
     if args.out is None:
         parser.error("--out is required")
     # The databases are made by this checkout's code, here and in the pools' fork server.
@@ -318,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
                 for variant in order:
                     print(f"{name} (S_max {s_max}), {variant}, seed {seed}, run {rep + 1} ...", flush=True)
                     r = run_variant(variants[variant], out / "runs" / name / f"{variant}-s{seed}-{rep}", db, gt,
-                                    s_max, args.workers, seed)
+                                    s_max, args.workers, seed, args.keep)
                     if r is None:
                         continue
                     r.update({"set": name, "s_max": s_max, "variant": variant, "seed": seed, "code": versions[variant]})
