@@ -202,12 +202,7 @@ def _plan_tree(
     parent[anchor] = None
     layer[anchor] = num_layers
 
-    path: dict[int, tuple[int, ...]] = {}
-    for v in nodes:
-        chain = [v]
-        while parent[chain[-1]] is not None:
-            chain.append(parent[chain[-1]])  # type: ignore[arg-type]
-        path[v] = tuple(chain)
+    path = _paths_to_root(nodes, parent)
 
     return MergePlan(
         anchor=anchor,
@@ -220,6 +215,17 @@ def _plan_tree(
         edges=edges,
         merge_order=tuple(merge_order),
     )
+
+
+def _paths_to_root(nodes: list[int], parent: Mapping[int, int | None]) -> dict[int, tuple[int, ...]]:
+    """Each node's chain of parents up to the root (itself first, the root last)."""
+    path: dict[int, tuple[int, ...]] = {}
+    for v in nodes:
+        chain = [v]
+        while parent[chain[-1]] is not None:
+            chain.append(parent[chain[-1]])  # type: ignore[arg-type]
+        path[v] = tuple(chain)
+    return path
 
 
 def _plan_rooted(
@@ -247,12 +253,7 @@ def _plan_rooted(
     layer = {v: height[v] + 1 for v in nodes if v != anchor}
     num_layers = height[anchor]
     layer[anchor] = num_layers
-    path: dict[int, tuple[int, ...]] = {}
-    for v in nodes:
-        chain = [v]
-        while parent[chain[-1]] is not None:
-            chain.append(parent[chain[-1]])  # type: ignore[arg-type]
-        path[v] = tuple(chain)
+    path = _paths_to_root(nodes, parent)
     merge_order = tuple((v, parent[v]) for v in sorted((v for v in nodes if v != anchor), key=lambda v: (layer[v], v)))
     return MergePlan(
         anchor=anchor,

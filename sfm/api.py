@@ -19,6 +19,7 @@ from sfm.core.model import Reconstruction
 from sfm.evaluation.options import AlignOptions
 from sfm.io.colmap_model import read_model
 from sfm.io.options import ExportOptions
+from sfm.io.workspace import numbered_folders
 from sfm.execution.options import ExecutionOptions
 from sfm.features.options import ExtractOptions
 from sfm.mapper.options import MapperOptions
@@ -50,9 +51,7 @@ def reconstruct(images: str | Path | None, workspace: str | Path, **options) -> 
     >>> models, report = reconstruct("photos", "work", max_cluster_size=50, workers=2)  # doctest: +SKIP
     """
     report = _run(Path(images) if images is not None else None, Path(workspace), make_options(**options))
-    sparse = Path(workspace) / "sparse"
-    folders = sorted((d for d in sparse.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
-    return [read_model(d) for d in folders], report
+    return [read_model(d) for d in numbered_folders(Path(workspace) / "sparse")], report
 
 
 def extend(workspace: str | Path, images: str | Path | None, **options) -> tuple[list[Reconstruction], dict]:
@@ -67,9 +66,7 @@ def extend(workspace: str | Path, images: str | Path | None, **options) -> tuple
     """
     summary = _extend(Path(workspace), Path(images) if images is not None else None,
                       ExtendRunOptions.from_values(options))
-    sparse = Path(workspace) / "sparse"
-    folders = sorted((d for d in sparse.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
-    return [read_model(d) for d in folders], summary
+    return [read_model(d) for d in numbered_folders(Path(workspace) / "sparse")], summary
 
 
 __all__ = ["reconstruct", "extend", "make_options", "export", "info", "align", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",

@@ -310,6 +310,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 # order of a run (the stages, the whole run, then what comes after or stands beside it).
 WORKSPACE_COMMANDS = {"extract", "match", "cluster", "map", "merge", "reconstruct", "extend", "demo", "synth"}
 RESUMABLE = {"extract", "match", "cluster", "map", "merge", "reconstruct", "extend"}
+REPORTS_ITSELF = {"reconstruct", "extend", "demo", "synth"}  # start and finish report.json in their stage code
 COMMANDS: list[tuple[str, str, object, list[tuple[str, dict]]]] = [
     ("extract", "SIFT features of every image into WORK/database.db", cmd_extract,
      [("--images", {"required": True, "help": "image folder (searched recursively)"}),
@@ -503,10 +504,11 @@ def run(args: argparse.Namespace) -> int:
         workspace = _workspace_of(args)
         with WorkspaceLock(workspace, args.command_line) if workspace else contextlib.nullcontext():
             setup_logging(workspace, args.verbosity)
-            if workspace is not None and args.command not in ("reconstruct", "extend", "demo", "synth"):
+            reports_here = workspace is not None and args.command not in REPORTS_ITSELF
+            if reports_here:
                 start_run(workspace, args.command_line, fresh=False)
             code = args.func(args)
-            if workspace is not None and args.command not in ("reconstruct", "extend", "demo", "synth"):
+            if reports_here:
                 finish_run(workspace, "finished")
             return code
     except KeyboardInterrupt:

@@ -117,7 +117,7 @@ def test_points_carry_the_colour_of_the_surface_they_lie_on(reconstruction):
     shuffled = np.abs(colors[np.random.default_rng(0).permutation(len(colors))] - truth).max(axis=1)
     grey = np.abs(128 - truth).max(axis=1)
     # SIFT keypoints sit on edges and blobs, where colour changes within a pixel: the median is
-    # what the test bounds (measured 17 of 255), against 100 for shuffled colours, 71 for BGR.
+    # what the test bounds, well below what shuffled, channel-swapped or grey colours give.
     assert np.median(error) < 30
     assert np.median(swapped) > 50 and np.median(shuffled) > 80 and np.median(grey) > 50
 

@@ -29,6 +29,7 @@ Modules, in reading order:
   the conventions above in full.
 - ``sfm.features.sift``: which SIFT keypoints are kept, descriptor bytes, keypoint scales.
 - ``sfm.features.cameras``: the intrinsics file, EXIF priors and camera grouping.
+- ``sfm.features.worker_memory``: how many extraction workers fit in memory (SIFT's pyramids).
 
 Paper: Figure 1's feature extraction; section 4.1 (the paper uses VLFeat's SIFT; graphsfm uses
 OpenCV's with COLMAP's settings).

@@ -52,7 +52,8 @@ Modules, in reading order:
 - ``sfm.io.colmap_model``: COLMAP sparse models (``.bin``, ``.txt``) to and from
   ``Reconstruction``, and PLY export.
 - ``sfm.io.colmap_files``: the byte level of those model files.
-- ``sfm.io.image_files``: finding images, EXIF (orientation, focal prior), decoding to grey.
+- ``sfm.io.image_files``: finding images, decoding them upright to grey or RGB, masks.
+- ``sfm.io.exif``: EXIF metadata: focal prior, GPS, orientation, make and model.
 - ``sfm.io.options``: the options of ``graphsfm export``.
 
 Paper: none directly; the database is the image graph's source (section 3.1.1) and the local

@@ -1,4 +1,4 @@
-"""Image files: finding them, reading their EXIF, decoding them to upright 8-bit grey or RGB.
+"""Image files: finding them, decoding them to upright 8-bit grey or RGB.
 
 Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
 
@@ -16,19 +16,10 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
   and 32-bit integer images are stretched from their min to their max.
 - Colour (:func:`read_rgb`, for the colours of the 3D points and the recording's thumbnails): the
   same decoding and orientation, to 8-bit RGB; grey images give three equal channels.
-- Focal prior from EXIF (:func:`focal_prior_from_exif`), in pixels of the upright image:
-  ``FocalLengthIn35mmFilm / 36 * max(W, H)`` (36 mm is the long side of a 35 mm frame; COLMAP
-  divides by 35), else ``FocalLength`` (mm) times the sensor's pixels per mm from
-  ``FocalPlaneXResolution`` / ``FocalPlaneResolutionUnit``, rescaled by
-  ``max(W, H) / max(PixelXDimension, PixelYDimension)`` when the file was resized after the
-  camera wrote those tags; else no prior. Priors outside ``[0.1, 50] * max(W, H)`` are treated
-  as bogus EXIF and ignored.
+- EXIF (``sfm.io.exif``): the focal prior, GPS, orientation, make and model.
 - Masks (:func:`read_mask`, COLMAP's convention): ``MASKS/<image name>.png``, a grey or colour
   image of the upright image's size whose zero pixels are to be ignored (a mask of the stored,
   unrotated size is turned upright with its image's EXIF orientation).
-- GPS (:func:`gps_from_exif`): the GPS IFD's latitude, longitude (degrees, minutes, seconds with
-  their N/S and E/W references) and altitude (metres, below sea level when GPSAltitudeRef is 1)
-  on WGS84; like COLMAP, all three must be there, else the image has no GPS.
 - A file that cannot be used raises :class:`BadImageError` whose message is the reason (empty
   file, not an image, truncated, ...). Pillow's decompression-bomb limit is lifted while we read:
   a 100-megapixel photo is a normal input here.
@@ -37,7 +28,6 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
 from __future__ import annotations
 
 import logging
-import math
 import os
 import warnings
 from collections.abc import Iterator
@@ -50,22 +40,12 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from sfm.io.exif import (MAKE, MODEL, ORIENTATION, exif_number, exif_tags, exif_text, focal_prior_from_exif,
+                         gps_from_exif, gps_tags)
+
 logger = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
-
-# EXIF tags (IFD0 and the Exif sub-IFD)
-_EXIF_IFD = 0x8769
-_GPS_IFD = 0x8825
-_GPS_LAT_REF, _GPS_LAT, _GPS_LON_REF, _GPS_LON, _GPS_ALT_REF, _GPS_ALT = 1, 2, 3, 4, 5, 6
-_ORIENTATION = 0x0112
-_MAKE, _MODEL = 0x010F, 0x0110
-_FOCAL_LENGTH = 0x920A
-_FOCAL_35MM = 0xA405
-_FOCAL_PLANE_X_RES, _FOCAL_PLANE_UNIT = 0xA20E, 0xA210
-_PIXEL_X_DIM, _PIXEL_Y_DIM = 0xA002, 0xA003
-_MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # inch, cm, mm, micrometre
-_PLAUSIBLE_FOCAL = (0.1, 50.0)  # times max(W, H)
 
 # EXIF orientation -> the Pillow transpose that makes the image upright (as ImageOps.exif_transpose)
 _UPRIGHT = {
@@ -154,99 +134,9 @@ def _no_pixel_limit() -> Iterator[None]:
         Image.MAX_IMAGE_PIXELS = saved
 
 
-def _number(value: object) -> float | None:
-    """A finite float from an EXIF value (rational, int, tuple of one), or None."""
-    if isinstance(value, (tuple, list)):
-        value = value[0] if len(value) == 1 else None
-    try:
-        x = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError, ZeroDivisionError):
-        return None
-    return x if math.isfinite(x) else None
-
-
-def _text(value: object) -> str:
-    if isinstance(value, bytes):
-        value = value.decode("latin-1", errors="replace")
-    return str(value).strip().strip("\x00").strip() if value is not None else ""
-
-
-def focal_prior_from_exif(tags: dict, width: int, height: int) -> tuple[float | None, str]:
-    """EXIF focal prior in pixels and its source (see the module docstring for the rules).
-
-    ``tags`` maps EXIF tag ids to values (IFD0 and the Exif sub-IFD merged); ``width`` and
-    ``height`` are the image's (either orientation: only ``max(W, H)`` matters).
-    """
-    max_size = max(width, height)
-    lo, hi = _PLAUSIBLE_FOCAL[0] * max_size, _PLAUSIBLE_FOCAL[1] * max_size
-    f35 = _number(tags.get(_FOCAL_35MM))
-    if f35 is not None and f35 > 0 and lo <= f35 / 36.0 * max_size <= hi:
-        return f35 / 36.0 * max_size, "exif-35mm"
-    f_mm = _number(tags.get(_FOCAL_LENGTH))
-    x_res = _number(tags.get(_FOCAL_PLANE_X_RES))
-    unit = _number(tags.get(_FOCAL_PLANE_UNIT))
-    unit_mm = _MM_PER_UNIT.get(int(unit) if unit is not None else 2)  # EXIF default: inches
-    if f_mm and f_mm > 0 and x_res and x_res > 0 and unit_mm is not None:
-        f_px = f_mm * x_res / unit_mm
-        exif_w, exif_h = _number(tags.get(_PIXEL_X_DIM)), _number(tags.get(_PIXEL_Y_DIM))
-        if exif_w and exif_h and exif_w > 0 and exif_h > 0:
-            f_px *= max_size / max(exif_w, exif_h)  # the file was resized after capture
-        if lo <= f_px <= hi:
-            return f_px, "exif-focal-plane"
-    return None, "none"
-
-
-def _degrees(value: object) -> float | None:
-    """Degrees from an EXIF (degrees, minutes, seconds) triple of rationals, or None."""
-    if not isinstance(value, (tuple, list)) or not 1 <= len(value) <= 3:
-        return None
-    parts = [_number(v) for v in value]
-    if any(p is None for p in parts):
-        return None
-    return sum(p / 60.0**k for k, p in enumerate(parts))  # type: ignore[operator]
-
-
-def gps_from_exif(gps: dict) -> tuple[float, float, float] | None:
-    """``(latitude, longitude, altitude)`` from a GPS IFD (tag ids to values), or None when
-    one of them is missing or out of range (module docstring)."""
-    lat, lon, alt = _degrees(gps.get(_GPS_LAT)), _degrees(gps.get(_GPS_LON)), _number(gps.get(_GPS_ALT))
-    if lat is None or lon is None or alt is None or not (0 <= lat <= 90 and 0 <= lon <= 180):
-        return None
-    if _text(gps.get(_GPS_LAT_REF)).upper().startswith("S"):
-        lat = -lat
-    if _text(gps.get(_GPS_LON_REF)).upper().startswith("W"):
-        lon = -lon
-    ref = gps.get(_GPS_ALT_REF)
-    if (ref[0] if isinstance(ref, (bytes, tuple, list)) and len(ref) else _number(ref)) == 1:
-        alt = -alt
-    return float(lat), float(lon), float(alt)
-
-
-def _gps_tags(im: Image.Image) -> dict:
-    if im.format == "PNG" and "exif" not in im.info:
-        return {}
-    try:
-        return dict(im.getexif().get_ifd(_GPS_IFD))
-    except Exception:  # noqa: BLE001 - malformed EXIF is common and never fatal
-        return {}
-
-
-def _exif_tags(im: Image.Image) -> dict:
-    """IFD0 and Exif sub-IFD tags merged (sub-IFD wins), read without decoding pixels."""
-    if im.format == "PNG" and "exif" not in im.info:
-        return {}  # PngImageFile.getexif() would decode the whole image to look after IDAT
-    try:
-        exif = im.getexif()
-        tags = dict(exif)
-        tags.update(exif.get_ifd(_EXIF_IFD))
-    except Exception:  # noqa: BLE001 - malformed EXIF is common and never fatal
-        return {}
-    return tags
-
-
 def _info_from_pil(im: Image.Image) -> ImageInfo:
-    tags = _exif_tags(im)
-    orientation = int(_number(tags.get(_ORIENTATION)) or 1)
+    tags = exif_tags(im)
+    orientation = int(exif_number(tags.get(ORIENTATION)) or 1)
     orientation = orientation if orientation in _UPRIGHT else 1
     width, height = im.size
     # Pillow's TIFF reader already reports the upright size (and rotates the pixels on load)
@@ -255,8 +145,8 @@ def _info_from_pil(im: Image.Image) -> ImageInfo:
         width, height = height, width
     focal, source = focal_prior_from_exif(tags, width, height)
     return ImageInfo(
-        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source,
-        gps_from_exif(_gps_tags(im)) if tags else None,
+        width, height, orientation, exif_text(tags.get(MAKE)), exif_text(tags.get(MODEL)), focal, source,
+        gps_from_exif(gps_tags(im)) if tags else None,
     )
 
 
@@ -353,7 +243,7 @@ def _decode(data: bytes, from_pil, from_cv2) -> tuple[np.ndarray, ImageInfo]:
             info = _info_from_pil(im)
             decoded = from_pil(im)
             # some Pillow readers (TIFF) rotate on load and then drop the tag: rotate only once
-            still_tagged = _number(_exif_tags(im).get(_ORIENTATION)) == info.orientation
+            still_tagged = exif_number(exif_tags(im).get(ORIENTATION)) == info.orientation
             if info.orientation in _UPRIGHT and still_tagged:
                 decoded = decoded.transpose(_UPRIGHT[info.orientation])
             arr = _to_uint8(np.asarray(decoded))
@@ -418,35 +308,3 @@ def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float,
     new_w, new_h = max(1, round(width / scale)), max(1, round(height / scale))
     small = cv2.resize(gray, (new_w, new_h), interpolation=cv2.INTER_AREA)
     return small, width / new_w, height / new_h
-
-
-def available_memory() -> int | None:
-    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def workers_for_memory(max_image_size: int) -> int:
-    """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
-    Gaussian and DoG pyramids of the 2x-upsampled image, 6 + 5 float32 images per octave at 4
-    times the input's pixels, and a third more over the smaller octaves: about 230 bytes per
-    input pixel of an image shrunk to ``max_image_size`` (taken as 4:3), plus the decoded
-    full-size image."""
-    cores = (
-        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    )
-    available = available_memory()
-    if available is None:
-        return cores
-    per_worker = 230 * 0.75 * max_image_size**2 + 300e6
-    fits = max(1, int(0.8 * available // per_worker))
-    if fits < cores:
-        logger.info("extract: %d workers instead of %d, to fit in %.1f GB of memory", fits, cores,
-                    available / 1e9)  # fmt: skip
-    return min(cores, fits)

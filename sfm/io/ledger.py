@@ -80,6 +80,14 @@ def fingerprint(*parts: Any) -> str:
     return h.hexdigest()[:20]
 
 
+def files_fingerprint(root: Path, pattern: str = "**/*") -> str:
+    """:func:`fingerprint` of the files under ``root`` matching ``pattern``: each one's path
+    relative to ``root`` and its bytes, in path order."""
+    root = Path(root)
+    files = sorted(p for p in root.glob(pattern) if p.is_file()) if root.is_dir() else []
+    return fingerprint(*[x for p in files for x in (p.relative_to(root).as_posix(), p.read_bytes())])
+
+
 def changes(old: dict | None, new: dict) -> list[str]:
     """``key: old -> new`` for every option that differs (``[]`` when equal or no record)."""
     if not isinstance(old, dict):

@@ -160,6 +160,13 @@ def read_georegistration(model_folder: Path) -> dict | None:
     return read_json(path) if path.is_file() else None
 
 
+def numbered_folders(folder: Path) -> list[Path]:
+    """The model folders ``folder/0``, ``folder/1``, ... in number order (none: ``[]``)."""
+    if not Path(folder).is_dir():
+        return []
+    return sorted((d for d in Path(folder).iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
+
+
 def image_dir_of(workspace: Path) -> Path | None:
     """The image folder the extract stage read (``WORK/extract.json``), if it still exists: where
     the recording finds the images of a workspace whose extraction ran earlier."""

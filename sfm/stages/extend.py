@@ -54,9 +54,9 @@ from sfm.execution.process_pool import start_pool_server
 from sfm.io.colmap_model import read_model, write_model
 from sfm.io.database import Database
 from sfm.io.image_files import find_images
-from sfm.io.ledger import Ledger, changes, fingerprint, options_record
+from sfm.io.ledger import Ledger, changes, files_fingerprint, fingerprint, options_record
 from sfm.io.report import finish_run, model_facts, models_fields, start_run, update_report
-from sfm.io.workspace import (DATABASE, RECORDING, WorkspaceLock, read_georegistration, read_json,
+from sfm.io.workspace import (DATABASE, RECORDING, WorkspaceLock, numbered_folders, read_georegistration, read_json,
                                write_georegistration, write_json_atomic)
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel
@@ -86,18 +86,6 @@ class ExtendRunOptions(ReconstructOptions):
     """The options of every stage the extension runs again on the new images, and its own."""
 
     extend: ExtendOptions = field(default_factory=ExtendOptions)
-
-
-def _numbered(folder: Path) -> list[Path]:
-    if not folder.is_dir():
-        return []
-    return sorted((d for d in folder.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
-
-
-def _folder_fingerprint(folder: Path) -> str:
-    """SHA-256 of every file under ``folder`` (names and bytes)."""
-    files = sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
-    return fingerprint(*[x for p in files for x in (p.relative_to(folder).as_posix(), p.read_bytes())])
 
 
 class _Extension:
@@ -143,7 +131,7 @@ class _Extension:
                 self.sparse.rename(self.old)
             self.result.rename(self.sparse)
         shutil.rmtree(self.old, ignore_errors=True)
-        self.ledger.finish(EXTEND, _folder_fingerprint(self.sparse))
+        self.ledger.finish(EXTEND, files_fingerprint(self.sparse))
 
     def commit(self) -> None:
         self.mark("commit")
@@ -173,7 +161,7 @@ def run_extend(workspace: Path, images: Path | None, options: ExtendRunOptions =
         if not names:
             raise InputError(f"no images found in {images}")
     identity = {"images": None if images is None else str(images.resolve()), "names": names}
-    old_fp = _folder_fingerprint(ext.sparse)
+    old_fp = files_fingerprint(ext.sparse)
     rec = ext.ledger.record(EXTEND)
     if (rec and rec.get("done") and rec.get("output") == old_fp and rec.get("options") == ext.opts
             and rec.get("identity") == identity):
@@ -199,7 +187,7 @@ def _new_images(ext: _Extension, names: list[str] | None, rec: dict | None) -> l
     with Database(ext.ws / DATABASE, readonly=True) as db:
         in_db = {r.name for r in db.read_images().values()}
     if names is None:
-        registered = {im.name for folder in _numbered(ext.sparse) for im in read_model(folder).images.values()}
+        registered = {im.name for folder in numbered_folders(ext.sparse) for im in read_model(folder).images.values()}
         new = sorted(in_db - registered)
         if not new:
             raise InputError("every image of the database is in a model: nothing to add (give --images)")
@@ -235,7 +223,7 @@ def _run_steps(ext: _Extension, images: Path | None) -> dict:
     t2 = time.perf_counter()
     ext.times.update({"extract": t1 - t0, "match": t2 - t1})
 
-    olds = [read_model(folder) for folder in _numbered(ext.sparse)]  # sparse/0, the anchor, first
+    olds = [read_model(folder) for folder in numbered_folders(ext.sparse)]  # sparse/0, the anchor, first
     clusters = _cluster(ext, olds, new_names)
     t3 = time.perf_counter()
     models = _map(ext, clusters)
@@ -260,7 +248,7 @@ def _report(ext: _Extension, summary: dict, elapsed: float) -> None:
     """``report.json`` after the commit: the workspace's final models as they now are, the
     database's counts, the extension's summary with the time of each of its steps."""
     written = [{"path": str(folder.resolve()), **model.summary()}
-               for folder in _numbered(ext.sparse) for model in [read_model(folder)]]
+               for folder in numbered_folders(ext.sparse) for model in [read_model(folder)]]
     names = [registered_names(Path(m["path"])) for m in written]
     fields = {**models_fields(written), **model_facts(ext.ws, names), "warnings": summary["warnings"],
               "extension": {**summary, "times_s": {k: round(v, 3) for k, v in ext.times.items()}}}
@@ -379,7 +367,7 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     # images' models of their own.
     shutil.rmtree(ext.result, ignore_errors=True)
     ext.result.mkdir(parents=True)
-    old_folders = _numbered(ext.sparse)
+    old_folders = numbered_folders(ext.sparse)
     if extended is None:
         shutil.copytree(old_folders[0], ext.result / "0")
     else:

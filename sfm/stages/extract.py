@@ -19,7 +19,7 @@ run SIFT, read the colour of each keypoint from the colour image (``sfm.features
 a recording, they also make the image's thumbnail from it) and return numpy arrays; only this
 process writes the database and the recording.  On a remote
 executor the tasks carry the image's bytes (no shared disk).  Local workers are capped by
-memory (``sfm.io.image_files.workers_for_memory``).
+memory (``sfm.features.worker_memory``).
 """
 
 from __future__ import annotations
@@ -41,8 +41,9 @@ from sfm.features.extraction import extract_features
 from sfm.features.options import ExtractOptions
 from sfm.io.database import Database
 from sfm.features.colors import keypoint_colors
+from sfm.features.worker_memory import workers_for_memory
 from sfm.io.image_files import (BadImageError, ImageInfo, find_images, mask_path, probe_image, read_gray, read_mask,
-                                read_rgb, workers_for_memory)
+                                read_rgb)
 from sfm.io.report import update_report
 from sfm.io.workspace import DATABASE
 from sfm.stages.extract_writer import SIDECAR, ExtractWriter, extract_ledger

@@ -141,12 +141,7 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
             raise InputError(f"{len(usable)} image(s) in {db_path} with keypoints and descriptors: SfM needs at least 2")
         ledger = resume_or_restart(workspace, "match", options_record(options), db.clear_matches,
                                    "the stored matches are deleted and every pair is matched again")
-        positions = _gps_positions(db, usable) if options.pairs == "spatial" else None
-        pairs = select_pairs(usable, options.pairs, top_k=options.top_k, sequential=options.sequential,
-                             exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
-                             load_descriptors=db.read_descriptors, positions=positions,
-                             spatial_neighbors=options.spatial_neighbors,
-                             spatial_max_distance=options.spatial_max_distance)  # fmt: skip
+        pairs = select_pairs(usable, options.pairs, **_pair_arguments(db, usable, options))
         done = db.pairs_with_geometry()
         todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
         skipped = len(pairs) - len(todo)
@@ -169,6 +164,16 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
     )  # fmt: skip
 
 
+def _pair_arguments(db: Database, image_ids: list[int], options: MatchOptions) -> dict:
+    """The pair selection's keyword arguments from the options (GPS positions read only for
+    ``--pairs spatial``)."""
+    positions = _gps_positions(db, image_ids) if options.pairs == "spatial" else None
+    return {"top_k": options.top_k, "sequential": options.sequential,
+            "exhaustive_threshold": options.exhaustive_threshold, "seed": options.seed,
+            "load_descriptors": db.read_descriptors, "positions": positions,
+            "spatial_neighbors": options.spatial_neighbors, "spatial_max_distance": options.spatial_max_distance}
+
+
 def match_extension(workspace: Path, new_names: list[str], options: MatchOptions = MatchOptions(),
                     executor=None) -> MatchResult:
     """Match and verify the pairs of images added to a finished model (``graphsfm extend``):
@@ -186,14 +191,7 @@ def match_extension(workspace: Path, new_names: list[str], options: MatchOptions
         usable = _usable_images(db, ordered, names)
         new = [i for i in usable if names[i] in wanted]
         old = [i for i in usable if names[i] not in wanted]
-        positions = None
-        if options.pairs == "spatial":
-            positions = _gps_positions(db, new + old)
-        pairs = extension_pairs(new, old, options.pairs, top_k=options.top_k, sequential=options.sequential,
-                                exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
-                                load_descriptors=db.read_descriptors, positions=positions,
-                                spatial_neighbors=options.spatial_neighbors,
-                                spatial_max_distance=options.spatial_max_distance)  # fmt: skip
+        pairs = extension_pairs(new, old, options.pairs, **_pair_arguments(db, new + old, options))
         done = db.pairs_with_geometry()
         todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
         logger.info("extension: %d new and %d old images, %d pairs selected, %d already verified (resumed), %d to match",

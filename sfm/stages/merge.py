@@ -21,9 +21,9 @@ from sfm.core import progress
 from sfm.errors import InputError, NoModelError
 from sfm.io.colmap_model import read_model
 from sfm.io.database import Database
-from sfm.io.ledger import Ledger, fingerprint, options_record
+from sfm.io.ledger import Ledger, files_fingerprint, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, read_report, update_report
-from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, image_dir_of, read_json, write_json_atomic
+from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components
@@ -47,7 +47,7 @@ def load_local_models(workspace: Path) -> list[LocalModel]:
         raise InputError(f"no local models in {root}: run cluster and map first")
     out = []
     for cdir in sorted((d for d in root.iterdir() if d.is_dir() and d.name[1:].isdigit()), key=lambda d: int(d.name[1:])):
-        for mdir in sorted((d for d in cdir.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name)):
+        for mdir in numbered_folders(cdir):
             out.append(LocalModel(f"{cdir.name}/{mdir.name}", read_model(mdir)))
     return out
 
@@ -185,6 +185,4 @@ def _report_fields(workspace: Path, num_local: int, num_components: int, written
 
 def _local_models_fingerprint(workspace: Path) -> str:
     """SHA-256 of every file of ``WORK/clusters/C<k>/<m>/``: what ``merge`` reads."""
-    root = workspace / "clusters"
-    files = sorted(p for p in root.glob("C*/*/*") if p.is_file()) if root.is_dir() else []
-    return fingerprint(*[x for p in files for x in (str(p.relative_to(root)), p.read_bytes())])
+    return files_fingerprint(workspace / "clusters", "C*/*/*")

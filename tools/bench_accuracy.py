@@ -1,0 +1,195 @@
+"""Pose accuracy on the real photo sets with ground truth: graphsfm against COLMAP's mappers, one run.
+
+    python tools/bench_accuracy.py [--data ../shared/data] [--sets lund_door temple_ring ...]
+                                   [--out DIR] [--recording] [--no-colmap-frontend]
+
+For every set (default: every folder of ``--data`` with ``images/`` and a pose table
+``gt/cameras_gt_opencv.txt``), on the same images and evaluated the same way
+(:func:`sfm.evaluation.metrics.evaluate`: the largest model, Sim3-aligned rotation error, the
+alignment-free relative-pose AUC):
+
+- ``graphsfm``: ``sfm.reconstruct(images, ...)`` with the defaults (the Rerun recording off
+  unless ``--recording``), from nothing; its time is the whole run.
+- ``graphsfm, N clusters``: ``reconstruct`` on a copy of that run's database with
+  ``--max-cluster-size`` the largest size that gives at least 3 clusters (cluster, map, merge);
+  its time is those stages.
+- ``colmap incremental`` and ``colmap global`` on graphsfm's database (the same matches):
+  ``pycolmap.incremental_mapping`` and ``pycolmap.global_mapping`` with their defaults; their
+  time is the mapper's.
+- ``colmap extract+match, incremental`` and ``..., global``: pycolmap's own front end
+  (``extract_features`` + ``match_exhaustive``, its defaults on the CPU, as
+  ``tools/bench_frontend.py``) and both mappers on that database; the time is front end + mapper.
+
+Per set the table has registered images (of the GT's), the median rotation error, AUC@1/5/10,
+time, and a verdict: graphsfm's AUC@1 and AUC@5 against COLMAP's best mapper (the highest value
+over COLMAP's rows, per threshold), and the forced-cluster run against the same (within 0.01).
+Images graphsfm did not register and models it did not merge are listed with the step that
+failed (``unregistered`` and ``warnings`` of ``report.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import shutil
+import sys
+import tempfile
+import time
+import zlib  # noqa: F401 - before pycolmap (pycolmap first breaks later zlib use)
+from pathlib import Path
+
+import cv2  # noqa: F401 - same reason
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_frontend import fresh, run_colmap as run_colmap_frontend  # noqa: E402
+from bench_mapping import run_colmap as run_colmap_mapper  # noqa: E402
+from benchmarks_page import add_page_arguments, markdown_table, peer_version, publish, run_context  # noqa: E402
+
+from sfm.api import reconstruct  # noqa: E402
+from sfm.evaluation.ground_truth import read_gt_table  # noqa: E402
+from sfm.evaluation.metrics import evaluate  # noqa: E402
+from sfm.io.colmap_model import read_model  # noqa: E402
+
+GT_TABLE = Path("gt") / "cameras_gt_opencv.txt"
+MIN_CLUSTERS = 3
+TOLERANCE_CLUSTERS = 0.01  # the forced-cluster run may trail COLMAP's best by this much
+
+
+def gt_sets(data: Path) -> list[str]:
+    """Folders of ``data`` with an ``images/`` folder and a GT pose table."""
+    return sorted(d.name for d in data.iterdir() if (d / "images").is_dir() and (d / GT_TABLE).exists())
+
+
+def evaluate_row(method: str, model_dir: Path | None, seconds: float, gt: dict) -> dict:
+    """One table row: registered (of the GT images), median rotation error, AUC@1/5/10, time."""
+    row = {"method": method, "registered": f"0/{len(gt)}", "med_rot_deg": "", "auc@1": 0.0, "auc@5": 0.0,
+           "auc@10": 0.0, "time_s": round(seconds, 1)}
+    if model_dir is None or not (model_dir / "images.bin").exists() and not (model_dir / "images.txt").exists():
+        return row
+    res = evaluate(read_model(model_dir), gt)
+    row.update({"registered": f"{res.num_registered}/{len(gt)}",
+                "med_rot_deg": round(res.median_rotation_error_deg, 4) if math.isfinite(res.median_rotation_error_deg) else "",
+                "auc@1": round(res.auc[1.0], 3), "auc@5": round(res.auc[5.0], 3), "auc@10": round(res.auc[10.0], 3)})
+    return row
+
+
+def graphsfm_default(images: Path, workspace: Path, recording: bool) -> tuple[Path, float, dict]:
+    fresh(workspace)
+    t0 = time.perf_counter()
+    _, report = reconstruct(images, workspace, recording=recording)
+    return workspace / "sparse" / "0", time.perf_counter() - t0, report
+
+
+def graphsfm_clusters(database: Path, workspace: Path, num_images: int) -> tuple[Path, float, dict, int]:
+    """``reconstruct`` from a copy of ``database`` with the largest ``max_cluster_size`` that gives
+    at least ``MIN_CLUSTERS`` clusters; (model, seconds, report, max_cluster_size)."""
+    size = max(2, -(-num_images // MIN_CLUSTERS))
+    while True:
+        fresh(workspace)
+        shutil.copy(database, workspace / "database.db")
+        t0 = time.perf_counter()
+        _, report = reconstruct(None, workspace, recording=False, max_cluster_size=size)
+        seconds = time.perf_counter() - t0
+        if report.get("num_clusters", 1) >= MIN_CLUSTERS or size <= 2:
+            return workspace / "sparse" / "0", seconds, report, size
+        size -= 1
+
+
+def colmap_frontend(images: Path, workspace: Path, threads: int) -> tuple[Path, float]:
+    """pycolmap's extraction and exhaustive matching with its defaults; (database, seconds)."""
+    run = run_colmap_frontend(images, workspace, None, threads)
+    return workspace / "database.db", run.t_total
+
+
+def failures(report: dict) -> list[str]:
+    """One line per image in no final model (with ``report.json``'s reason) and per warning of
+    the run (a cluster that failed, models that did not merge)."""
+    lines = [f"{u['name']}: {u['reason']}" for u in report.get("unregistered", [])]
+    return lines + list(report.get("warnings", []))
+
+
+def verdict(rows: list[dict], gt_count: int) -> list[str]:
+    """graphsfm against COLMAP's best mapper (highest AUC over COLMAP's rows, per threshold)."""
+    colmap = [r for r in rows if r["method"].startswith("colmap")]
+    if not colmap:
+        return []
+    out = []
+    for k in ("auc@1", "auc@5"):
+        best = max(colmap, key=lambda r: r[k])
+        out.append(f"COLMAP's best {k}: {best[k]} ({best['method']})")
+    for r in rows:
+        if r["method"].startswith("colmap"):
+            continue
+        tolerance = 0.0 if r["method"] == "graphsfm" else TOLERANCE_CLUSTERS
+        ok = r["registered"] == f"{gt_count}/{gt_count}" and all(
+            r[k] >= max(c[k] for c in colmap) - tolerance - 1e-12 for k in ("auc@1", "auc@5"))
+        out.append(f"{r['method']}: {'meets' if ok else 'DOES NOT MEET'} all images and AUC@1, AUC@5 >= COLMAP's best"
+                   + (f" - {tolerance}" if tolerance else ""))
+    return out
+
+
+def bench_set(data: Path, name: str, out: Path, threads: int, recording: bool, colmap_frontend_too: bool,
+              context: dict) -> tuple[list[dict], list[str]]:
+    images, gt = data / name / "images", read_gt_table(data / name / GT_TABLE)
+    where = out / name
+    rows, notes = [], []
+    model, seconds, report = graphsfm_default(images, where / "graphsfm", recording)
+    rows.append(evaluate_row("graphsfm", model, seconds, gt))
+    notes += [f"graphsfm: {line}" for line in failures(report)]
+    database = where / "graphsfm" / "database.db"
+    model, seconds, report, size = graphsfm_clusters(database, where / "graphsfm_clusters", len(gt))
+    rows.append(evaluate_row(f"graphsfm, {report.get('num_clusters')} clusters (--max-cluster-size {size})",
+                             model, seconds, gt))
+    notes += [f"graphsfm, clusters: {line}" for line in failures(report)]
+    for kind in ("incremental", "global"):
+        model, seconds = run_colmap_mapper(database, where / f"colmap_{kind}", kind)
+        rows.append(evaluate_row(f"colmap {kind} (graphsfm's database)", model, seconds, gt))
+    if colmap_frontend_too:
+        colmap_db, front_s = colmap_frontend(images, where / "colmap_frontend", threads)
+        for kind in ("incremental", "global"):
+            model, seconds = run_colmap_mapper(colmap_db, where / f"colmap_frontend_{kind}", kind)
+            rows.append(evaluate_row(f"colmap extract+match, {kind}", model, front_s + seconds, gt))
+    for r in rows:
+        r.update({"date": context["date"], "machine": context["machine"],
+                  "code": peer_version() if r["method"].startswith("colmap") else context["code"]})
+    return rows, verdict(rows, len(gt)) + notes
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
+                        help="folder of the photo sets (default: %(default)s)")
+    parser.add_argument("--sets", nargs="+", help="set names (default: every set of --data with pose GT)")
+    parser.add_argument("--out", type=Path, help="output folder (default: a new temporary folder)")
+    parser.add_argument("--recording", action="store_true", help="graphsfm's default run writes its Rerun recording")
+    parser.add_argument("--no-colmap-frontend", action="store_true",
+                        help="skip pycolmap's own extraction and matching (its mappers on graphsfm's database only)")
+    add_page_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
+    import os
+
+    sets = args.sets or gt_sets(args.data)
+    out = args.out or Path(tempfile.mkdtemp(prefix="graphsfm_bench_accuracy_"))
+    threads = len(os.sched_getaffinity(0))
+    context = run_context()
+    sections = []
+    for name in sets:
+        rows, notes = bench_set(args.data, name, out, threads, args.recording, not args.no_colmap_frontend, context)
+        text = f"### {name}\n\n{markdown_table(rows)}\n\n" + "\n".join(f"- {n}" for n in notes)
+        print(text + "\n", flush=True)
+        sections.append(text)
+        (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes}, indent=1))
+    intro = ("graphsfm (defaults; and with forced clusters) and pycolmap's mappers on the same images, "
+             "evaluated by `sfm.evaluation.metrics.evaluate` (largest model; rotation error after Sim3 "
+             "alignment; relative-pose AUC). Times: graphsfm's default row the whole run (extract to final "
+             "model), the cluster row cluster + map + merge on the same database, the COLMAP rows on "
+             "graphsfm's database the mapper alone, the `extract+match` rows pycolmap's front end + mapper.")
+    publish(args, "accuracy", "Pose accuracy on the photo sets with ground truth", intro + "\n\n" + "\n\n".join(sections))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
