@@ -33,7 +33,9 @@ Modules, in pipeline order:
 - ``graph.partition``: ``partition_graph``: NCut into cores of at most ``S_max`` images
   (section 3.1.1, Alg. 1, lines 1-2).
 - ``graph.expansion``: ``expand_clusters``: MaxST-guided subgraph expansion into overlapping
-  clusters (section 3.1.2, Alg. 1, lines 3-12).
+  clusters within the size bound (section 3.1.2, Alg. 1, lines 3-12).
+- ``graph.clustering``: ``cluster_images``: both, under the size and completeness constraints
+  (section 3.1): cores that leave the expansion room, re-cut where a cluster fills up below C.
 - ``graph.extension``: ``cluster_extension``: images added to a finished reconstruction
   clustered by Alg. 1, each cluster with overlap into the given anchor cluster.
 - ``graph.merge_plan``: ``plan_merges``: the MinST of the cluster graph (section 3.2.2,

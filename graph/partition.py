@@ -14,7 +14,10 @@ then:
 4. tiny fragments (smaller than ``min_fragment_size``) are merged into the neighbouring part
    they share most edge weight with, as long as the merged part stays within ``S_max``.
 
-A component of size ``<= S_max`` is one cluster. No dense ``n x n`` matrix is ever built.
+A component of size ``<= S_max`` is one cluster, and so is a component of at most
+``max_whole_component`` nodes (the expanded-cluster bound when the cores are cut smaller to leave
+the expansion room, ``graph.expansion.core_size_bound``: a component that fits one cluster needs
+no cut and no merge). No dense ``n x n`` matrix is ever built.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ def partition_graph(
     max_cluster_size: int,
     seed: int = 0,
     min_fragment_size: int | None = None,
+    max_whole_component: int | None = None,
 ) -> list[np.ndarray]:
     """Partition the image graph into cores of at most ``max_cluster_size`` images (section 3.1.1).
 
@@ -64,19 +68,23 @@ def partition_graph(
             partition.
         min_fragment_size: parts smaller than this are merged into a neighbour when the bound
             allows; default ``max(1, S_max // 4)``.
+        max_whole_component: a connected component of at most this many nodes is one core
+            even when larger than ``S_max`` (default: ``S_max``).
 
     Returns:
-        Disjoint sorted int64 arrays of node ids covering ``0..n-1``, each of size
-        ``<= S_max``, ordered by their smallest member.
+        Disjoint sorted int64 arrays of node ids covering ``0..n-1``, ordered by their
+        smallest member; each of size ``<= S_max`` unless it is a whole component of at most
+        ``max_whole_component`` nodes.
     """
     s_max = int(max_cluster_size)
     if s_max < 1:
         raise ValueError(f"max_cluster_size must be >= 1, got {max_cluster_size!r}")
     min_frag = max(1, s_max // 4) if min_fragment_size is None else int(min_fragment_size)
+    whole = s_max if max_whole_component is None else max(s_max, int(max_whole_component))
 
     clusters: list[np.ndarray] = []
     for comp in connected_components(graph):
-        if comp.size <= s_max:
+        if comp.size <= whole:
             clusters.append(comp)
             continue
         if s_max == 1:

@@ -23,9 +23,12 @@ Design:
   similarities composed along its tree path; an image registered in several models keeps the
   pose of the model nearest the anchor, a camera the parameters of the model that registered
   most of its images.
-- Refinement (Figure 1 and the end of section 3's overview: "in practice, it is enough to
-  perform them once"): every track re-triangulated with the merged poses, one global BA and
-  filtering, and a second BA only when re-triangulation added enough.
+- Refinement (Figure 1 and the end of section 3's overview: re-triangulation and BA "can be
+  executed alternatively until convergence"): every track re-triangulated with the merged
+  poses, then global BA and filtering alternate with re-triangulation until it changes at most
+  COLMAP's 0.0005 of the observations (at most five BAs).  The paper finds one round enough;
+  clusters joined through thin overlaps need more, because similarity-moved poses make the
+  first triangulation reject observations that the first BA brings back.
 - Departures: the MSD is normalised by the common cameras' extent so weights compare across
   pairs of models of different scales; the relative scale's median is anchored at each RANSAC
   hypothesis (robust to up to half the common cameras being wrong) and the rotation comes from

@@ -30,7 +30,7 @@ from sfm.mapper.state import MapperState
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph
 from sfm.merge.options import MergeOptions
-from sfm.merge.refinement import MIN_RETRIANGULATION_GAIN, refine_with_poses
+from sfm.merge.refinement import alternate_until_converged, refine_with_poses
 
 ANCHOR = 0  # the finished model is node 0 of the extension's cluster graph
 
@@ -65,8 +65,8 @@ def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str,
     """The extended model's refinement (Figure 1's re-triangulation and BA after merging, with
     a cost that grows with the new part): every track triangulated with the merged poses, a BA
     of the new images' region (``BundleAdjuster.region``) with the rest held and filtering,
-    re-triangulation, and a second region BA only when re-triangulation added more than
-    :data:`MIN_RETRIANGULATION_GAIN` of the observations; the points outside the region are
+    alternating with re-triangulation until it converges (``alternate_until_converged``, as the
+    merge's refinement); the points outside the region are
     re-estimated with their cameras held.  ``full_ba``: :func:`refine_with_poses`, the global
     BA of the ``merge`` stage."""
     if full_ba:
@@ -81,11 +81,13 @@ def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str,
     new = np.array([i for i, n in enumerate(state.names) if n in new_names], dtype=np.int64)
     adjuster = BundleAdjuster(state)
     state.retriangulate()
-    region = adjuster.region(new, loss_scale=opts.loss_scale)
-    before = int(state.obs_inlier.sum())
-    state.retriangulate()
-    if state.obs_inlier.sum() > (1 + MIN_RETRIANGULATION_GAIN) * before:
+    region = np.zeros(0, np.int64)
+
+    def adjust_region() -> None:
+        nonlocal region
         region = adjuster.region(new, loss_scale=opts.loss_scale)
+
+    alternate_until_converged(state, adjust_region)
     outside = np.setdiff1d(np.flatnonzero(state.track_valid), region)
     if len(outside):
         adjuster.refine_points(outside)

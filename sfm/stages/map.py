@@ -80,9 +80,11 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     db_path = workspace / DATABASE
     if not db_path.exists():
         raise InputError(f"no database at {db_path}: run extract and match (or synth) first")
-    clusters = None
+    clusters, clusters_warnings = None, []
     if (workspace / CLUSTERS).exists():
-        clusters = [c["members"] for c in read_json(workspace / CLUSTERS)["clusters"]]
+        clusters_json = read_json(workspace / CLUSTERS)
+        clusters = [c["members"] for c in clusters_json["clusters"]]
+        clusters_warnings = clusters_json.get("warnings", [])
     # One cluster (all images fit): its models are final and go straight to sparse/.
     direct = clusters is None or len(clusters) == 1
     payloads = ClusterPayloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics,
@@ -155,6 +157,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         fields["warnings"].append(failed_clusters_warning(failed))
     for warning in fields["warnings"]:
         log.warning("%s", warning)
+    fields["warnings"] = clusters_warnings + fields["warnings"]  # the cluster stage logged its own
     update_report(workspace, fields, {"map": elapsed})
     ledger.finish("map", fingerprint(input_fp, opts, failed))
     if not flat:

@@ -23,7 +23,7 @@ from sfm.io.colmap_model import read_model
 from sfm.io.database import Database
 from sfm.io.ledger import Ledger, files_fingerprint, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, read_report, update_report
-from sfm.io.workspace import DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
+from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components, unjoined_parts
@@ -174,7 +174,8 @@ def _report_fields(workspace: Path, num_local: int, num_components: int, written
     fields = {"num_local_models": num_local, "merged": True, "merge_components": num_components,
               **models_fields(written), **model_facts(workspace, final_names)}
     failed = read_report(workspace)["failed_clusters"]
-    fields["warnings"] = [failed_clusters_warning(failed)] if failed else []  # map's still hold, nothing else
+    clusters = read_json(workspace / CLUSTERS) if (workspace / CLUSTERS).exists() else {}
+    fields["warnings"] = clusters.get("warnings", []) + ([failed_clusters_warning(failed)] if failed else [])  # still hold
     if len(written) > 1:
         msg = (f"{len(written)} models: the scene splits into {len(written)} parts that share no aligned cluster pair "
                f"(sizes {', '.join(str(m['registered']) for m in written)})")
