@@ -7,8 +7,8 @@ the pixel convention is the caller's, as long as principal points and observatio
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -69,7 +69,7 @@ class BAProblem:
 
 @dataclass(frozen=True)
 class BAOptions:
-    """Options of :func:`bundle_adjust`.
+    """Options of :func:`backend.bundle_adjustment.bundle_adjust`.
 
     loss, loss_scale: robust loss on each observation's pixel error, "huber" (default),
         "cauchy" or "none", with its scale in pixels (default 1.0; times the observation's
@@ -86,25 +86,27 @@ class BAOptions:
         one fixed pose, only that distance prior; with two or more, none (they fix all 7 dof).
     max_iterations, relative_tolerance, absolute_tolerance: Levenberg-Marquardt stopping rules
         (tolerances on the decrease of the total cost 0.5 * sum rho(err²); 1e-5 is GTSAM's
-        default: robust losses converge linearly in the tail, where tighter tolerances buy
-        hundredths of a pixel for tens of iterations).
+        default: robust losses converge linearly in the tail, where a tighter tolerance costs
+        many iterations for a change far below the observations' noise).
     ordering: "auto" (default: "points_first" up to ``backend.gtsam_solver.AUTO_METIS_OBSERVATIONS`` observations,
         "metis" above), "points_first" (every point, then calibrations and poses, the Schur
-        ordering of BA; ~20% faster than METIS on a 100-image problem and no partitioning
-        cost), "metis" or "colamd".  Points first keeps, for every point, a dense Hessian
-        block over all cameras that see it until the cameras are eliminated: about 5 KB per
-        observation (3.0 GB peak on a 500-image, 608k-observation problem, against 0.94 GB
-        and 1.5x less time with METIS's nested dissection).  (GTSAM 4.3's Schur-mode
-        SfmLevenbergMarquardtOptimizer was 1.7-1.8x slower on 100- and 400-image problems.)
+        ordering of BA: no graph partitioning to compute, which pays on small problems),
+        "metis" or "colamd".  Points first keeps, for every point, a dense Hessian block over
+        all cameras that see it until the cameras are eliminated, so its memory grows with
+        the observations times the cameras per point; METIS's nested dissection keeps the fill
+        of large problems far smaller.
     optimizer: "lm" (Levenberg-Marquardt, default) or "gauss_newton_or_lm" (Gauss-Newton while
-        every step lowers the cost, else LM from the start: a third less time per iteration
-        from a good start, ``backend.gtsam_solver.gauss_newton_or_lm``).
+        every step lowers the cost, else LM from the start: from a good start Gauss-Newton
+        takes LM's steps without its damping and step control,
+        ``backend.gtsam_solver.gauss_newton_or_lm``).
     predictive_stop: also stop once the last two iterations' relative decreases shrink so fast
         that the rest of the series (geometric: ``d_k r / (1 - r)``, ``r = d_k / d_(k-1)``) is
         below ``relative_tolerance`` (``backend.gtsam_solver.predicted_rest``): the iteration
         that would only confirm convergence is skipped.  Meant for BAs that later BAs refine
         again; a slow, steady creep (``r`` near 1) is never cut short.
     verbose: log every LM iteration at INFO (otherwise DEBUG).
+    on_iteration: called as ``on_iteration(iteration, cost_before, cost_after)`` after each
+        iteration (a progress display; it must not raise).
     """
 
     loss: str = "huber"
@@ -118,6 +120,7 @@ class BAOptions:
     optimizer: str = "lm"
     predictive_stop: bool = False
     verbose: bool = False
+    on_iteration: Callable[[int, float, float], None] | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)

@@ -265,7 +265,8 @@ def _build(problem: BAProblem, options: BAOptions) -> _Graph:
 
 
 def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BAResult:
-    """Jointly refine poses, points and (optionally) per-group intrinsics (robust LM, GTSAM).
+    """Jointly refine poses, points and (optionally) per-group intrinsics (robust LM, GTSAM): the
+    bundle adjustments of local SfM (paper section 3.2) and the final one (Figure 1).
 
     Images, points and groups without observations are returned unchanged, and so are the
     poses in ``problem.fixed_poses``.  Errors reported are in pixels.

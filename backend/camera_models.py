@@ -128,24 +128,28 @@ def _distortion(spec: CameraModelSpec, params: Array, u: Array, v: Array):
 
 
 def project(model: str, params: Array, points_cam: Array) -> Array:
-    """Pixels (N, 2) of camera-frame points (N, 3).  Points with z <= 0 give NaN."""
+    """Pixels (N, 2) of camera-frame points (N, 3).  Points with z <= 0 give NaN; points so
+    close to the image plane that the distortion overflows give inf (no warning: callers treat
+    non-finite pixels as unusable)."""
     spec = model_spec(model)
     params = np.asarray(params, dtype=np.float64)
     pts = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     z = pts[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(z > 0, pts[:, 0] / z, np.nan)
-        v = np.where(z > 0, pts[:, 1] / z, np.nan)
-    du, dv = _distortion(spec, params, u, v)
     fx, fy = focal_lengths(model, params)
     cx, cy = params[spec.pp_idx[0]], params[spec.pp_idx[1]]
-    return np.stack([fx * (u + du) + cx, fy * (v + dv) + cy], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        u = np.where(z > 0, pts[:, 0] / z, np.nan)
+        v = np.where(z > 0, pts[:, 1] / z, np.nan)
+        du, dv = _distortion(spec, params, u, v)
+        return np.stack([fx * (u + du) + cx, fy * (v + dv) + cy], axis=1)
 
 
 def unproject(model: str, params: Array, pixels: Array, iterations: int = 20) -> Array:
     """Normalised image coordinates (N, 2) of pixels (N, 2): removes the distortion by fixed-point
     iteration (converges for the mild distortion SfM cameras have; stops early once an
-    iteration changes nothing, which more iterations would not either)."""
+    iteration changes nothing, which more iterations would not either).  A pixel the iteration
+    cannot undistort (beyond where the distortion is invertible, as with intrinsics a young
+    model's BA has not settled) comes out NaN."""
     spec = model_spec(model)
     params = np.asarray(params, dtype=np.float64)
     px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
@@ -155,13 +159,16 @@ def unproject(model: str, params: Array, pixels: Array, iterations: int = 20) ->
     vd = (px[:, 1] - cy) / fy
     u, v = ud.copy(), vd.copy()
     if spec.extra_idx:
-        for _ in range(iterations):
-            du, dv = _distortion(spec, params, u, v)
-            u_next, v_next = ud - du, vd - dv
-            if np.array_equal(u_next, u) and np.array_equal(v_next, v):
-                break
-            u, v = u_next, v_next
-    return np.stack([u, v], axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):  # diverging rows end as inf/NaN: reported NaN
+            for _ in range(iterations):
+                du, dv = _distortion(spec, params, u, v)
+                u_next, v_next = ud - du, vd - dv
+                if np.array_equal(u_next, u) and np.array_equal(v_next, v):
+                    break
+                u, v = u_next, v_next
+    out = np.stack([u, v], axis=1)
+    out[~np.all(np.isfinite(out), axis=1)] = np.nan
+    return out
 
 
 def ds2_from_params(model: str, params: Array) -> Array:

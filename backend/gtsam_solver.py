@@ -40,7 +40,7 @@ def robust_noise(loss: str, scale: float, sigma: float = 1.0) -> gtsam.noiseMode
 
 
 # Above this many factors "auto" orders by METIS: points first would hold a dense Hessian
-# block per point over its cameras (~5 KB per observation), half a gigabyte at this size.
+# block per point over all its cameras, whose memory grows faster than METIS's fill.
 AUTO_METIS_OBSERVATIONS = 100_000
 
 
@@ -73,6 +73,8 @@ def _configure(params, graph, values, options: BAOptions, history: list | None, 
         logger.log(level, "%s iteration %d: cost %.6g -> %.6g", name, iteration, before, after)
         if history is not None:
             history.append((before, after))
+        if options.on_iteration is not None:
+            options.on_iteration(iteration, before, after)
         decreases.append((before - after) / before if before > 0 else 0.0)
         if options.predictive_stop and predicted_rest(decreases) < options.relative_tolerance:
             raise PredictedConvergence  # the optimiser holds this iteration's values
@@ -120,8 +122,8 @@ def gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history:
     iterations, converged)``: iterations of both, converged when the one that gave the result
     stopped before ``options.max_iterations``.  From a good start (a local BA after PnP and
     triangulation) Gauss-Newton takes the same steps as LM, whose damping and step control
-    cost about a third of each iteration there; LM remains for starts where the quadratic
-    model misleads (a young model's intrinsics)."""
+    then only cost time; LM remains for starts where the quadratic model misleads (a young
+    model's intrinsics)."""
     trial: list[tuple[float, float]] = []
     params = _configure(gtsam.GaussNewtonParams(), graph, values, options, trial, "Gauss-Newton")
     optimizer = gtsam.GaussNewtonOptimizer(graph, values, params)

@@ -1,8 +1,8 @@
 """A bundle adjustment too large for memory, as the consensus of BAs over disjoint track parts.
 
-GTSAM holds about 1.2-1.7 KB per observation while it optimises (the factor, its linearised
-Jacobian and the elimination's share), so a 4,000-image aerial block with 4.8 M observations
-needs 6-8 GB.  Here the points are split at random into ``K`` parts of about equal size; each
+GTSAM holds every factor, its linearised Jacobian and its share of the elimination in memory
+while it optimises, so memory grows with the number of observations and a large block's final
+BA may not fit.  Here the points are split at random into ``K`` parts of about equal size; each
 part is bundle-adjusted on its own with every camera and the shared intrinsics free and the
 same gauge (the same anchor pose and scale prior, so the parts' results live in one frame);
 then each camera's pose is the mean of its part estimates (rotation: the chordal L2 mean, the
@@ -12,35 +12,18 @@ of its part estimates.  Peak memory is that of one part.
 Why a mean and not one part: in the linear regime each part's estimate is the full solution
 plus an independent error whose covariance is about ``K`` times the full BA's (a random part
 carries 1/K of the information about every camera); the mean of ``K`` such estimates has the
-full BA's covariance again: the classic one-shot divide-and-conquer estimator.  That matters
-where the problem is nearly flat: a nadir aerial block lets focal length, radial distortion
-and camera tilt trade along a shallow valley (the "doming" of self-calibrating aerial BA),
-and on the 500-image synthetic block single parts of a third of the tracks land at median
-rotation errors of 0.05-0.27 deg, their mean at 0.022 deg, the full BA at 0.021 deg.  Taking the
-best-spread subset instead (``backend.track_subset``) gave 0.034 deg on the same problem.
-What the mean does not pool is the flat direction itself.  Measured on the 2,000-image
-block's second final BA (2.44 M observations, three parts; one BA needs 3.5 GB): one BA lands
-at 0.018 deg median rotation error with focal 1279.65 px and k1 -2.0e-5; the three parts at
-0.09-0.11 deg with k1 1.8e-4, -1.7e-4 and -2.1e-4, their mean at -6.6e-5 and 0.034 deg.  With
-the intrinsics held at the single BA's values, the parts' mean pose is at 0.020 deg; held at
-the parts' mean, 0.035 deg: the pose averaging works, the intrinsics are what is lost.  A part
-with a third of the points pins focal, distortion and tilt far worse than a third as well: the
-parts' k1 scatter (standard deviation 2.1e-4) is about ten times the single BA's distance from
-the true k1 = 0 (2.0e-5 here, 2.8e-5 on the first final BA), where a third of the data would
-explain sqrt 3.  The single BA's estimate along that direction comes from the parts' joint
-information (cameras held by all points at once pin the intrinsics), which a mean of their
-estimates does not carry.  The parts are converged (a relative tolerance of 1e-7 moves a
-part's k1 by under 1%), and it is not a small-sample bias: subtracting the bias estimated from half-size
-parts (the subsampled-average correction) made the first final BA of the same merge worse,
-0.033 deg against 0.028 (there the plain mean had landed next to the single BA, 0.028 deg).
-On the 4,000-image block, five parts gave 0.052 deg where one BA over all 4.8 M observations
-gave 0.019 deg (and 8.4 GB instead of 3.4 GB peak).  Tried and dropped: intrinsics from three
-spatial blocks of cameras (each camera with all its points), then the random parts with those
-intrinsics held.  On the second final BA the blocks (bands along x) agreed (k1 -6.4e-5,
--2.9e-5, -5.2e-5); on the first (bands along the centres' first principal axis), started from
-the merged poses at 0.18 deg, they agreed on k1 near -3.4e-4, and the parts' mean with that
-held stayed at 0.18 deg: a block's self-calibration depends on where it starts, which the one
-BA over everything does not show.
+full BA's covariance again: the classic one-shot divide-and-conquer estimator.  One part alone,
+or a best-spread subset of the tracks (``backend.track_subset``), carries only part of the
+information, which matters where the problem is nearly flat: a nadir aerial block lets focal
+length, radial distortion and camera tilt trade along a shallow valley (the "doming" of
+self-calibrating aerial BA).
+
+What the mean does not pool is that flat direction itself.  A part with a fraction of the
+points pins focal, distortion and tilt far worse than in proportion, and the single BA's
+estimate along the valley comes from the parts' joint information (cameras held by all points
+at once pin the intrinsics), which a mean of their estimates does not carry.  So the poses
+average well and the self-calibrated intrinsics less well than one BA over everything: split a
+BA only when one does not fit in memory.
 
 The points returned are each from its own part (consistent with the averaged cameras to the
 parts' small spread); the caller re-estimates them with the averaged cameras held.

@@ -1,7 +1,7 @@
 """Pairwise similarity between two local models from their common cameras (paper section 3.2.1),
-and the residual error that weights the cluster-graph edge (section 3.2.2, Eq. 9-10).
+and the residual error that weights the cluster-graph edge (section 3.2.2, Eq. 10-11).
 
-DESIGN.md step 7. Conventions: poses are ``cam_from_world`` (x_cam = R X + t), camera centre
+Conventions: poses are ``cam_from_world`` (x_cam = R X + t), camera centre
 C = -R^T t. A similarity ``b_from_a`` maps X_b = s R X_a + t; a camera k registered in both models
 then satisfies R_b,k = R_a,k R^T and C_b,k = s R C_a,k + t. Arrays in, frozen dataclasses out;
 this module imports neither ``sfm`` nor ``graph``.
@@ -14,7 +14,8 @@ Algorithm of :func:`estimate_similarity`:
    (1 - e)^2 of them join two inliers, so the global median breaks down once e > 29% of the
    common cameras are outliers; the anchored median of an inlier k holds up to e < 50%.
 2. Rotation and translation, Eq. 3-6, by RANSAC with the scale known: a single camera k is a
-   minimal sample (its orientation fixes R = R_b,k^T R_a,k, then t = C_b,k - s R C_a,k).
+   minimal sample (its orientation fixes R = R_b,k^T R_a,k, Eq. 5, then t = C_b,k - s R C_a,k,
+   Eq. 6 written for camera centres).
    Every camera is tried when there are at most ``max_hypotheses`` (no randomness), else a
    seeded sample. A camera is an inlier when its centre error is below ``center_threshold``
    times the extent of the common cameras in frame b and its rotation error below
@@ -58,13 +59,14 @@ class SimilarityOptions:
         geometric median, robust to far outliers; default 0.05).
     rotation_threshold_deg: ... and its orientation error below this angle (default 5 degrees).
     max_msd: edges whose normalised MSD exceeds this are dropped by the caller (the paper's
-        dotted edges, Figure 4). Default 0.025 = ``center_threshold`` / 2: the paper's MSD
-        (1/2n) sqrt(sum e_i^2) of n points all within the inlier tolerance tau (e_i < tau x
-        extent) is below tau / (2 sqrt(n)) <= tau / 2, with equality approached at n = 1. So it
-        is the tightest threshold that never drops an edge whose common points all agree as well
-        as its inlier cameras must, whatever n. Because of the paper's 1/(2n) sqrt(sum), it drops
-        only gross residuals as n grows: an RMS above 2 sqrt(n) x max_msd extents (0.05 extents
-        for n = 1, 1.1 extents for n = 500 common points). Change it with ``center_threshold``.
+        dotted edges, Figure 3). Default 0.025 = ``center_threshold`` / 2: the paper's MSE,
+        Eq. 10, (1/2n) sqrt(sum e_i^2), of n points all within the inlier tolerance tau (e_i <
+        tau x extent) is below tau / (2 sqrt(n)) <= tau / 2, with equality approached at n = 1.
+        So it is the tightest threshold that never drops an edge whose common points all agree
+        as well as its inlier cameras must, whatever n. Because of the paper's 1/(2n) sqrt(sum),
+        it drops only gross residuals as n grows: an RMS above 2 sqrt(n) x max_msd extents (0.05
+        extents for n = 1, 1.1 extents for n = 500 common points). Change it with
+        ``center_threshold``.
     max_hypotheses: above this many common cameras, RANSAC tries a seeded sample of this many
         single-camera hypotheses instead of all of them (default 200).
     refit_rotation_on_centres: take the final rotation from the inlier centres (least squares)
@@ -91,11 +93,11 @@ class SimilarityResult:
 
     scale, rotation (3,3), translation (3,): the similarity ``b_from_a`` (X_b = s R X_a + t).
     camera_inliers: bool mask over the common cameras (input order); num_inliers its count.
-    mse_ab, mse_ba: the paper's Eq. 9 in both directions (a->b with T, b->a with T^-1), each
-        divided by the inlier cameras' extent in its target frame (b, resp. a).
-    msd: max(mse_ab, mse_ba), Eq. 10 (normalised, symmetric): the edge weight.
+    mse_ab, mse_ba: the paper's MSE, Eq. 10, in both directions (a->b with T, b->a with T^-1),
+        each divided by the inlier cameras' extent in its target frame (b, resp. a).
+    msd: max(mse_ab, mse_ba), the MSD of Eq. 11 (normalised, symmetric): the edge weight.
     num_points: common 3D points given; the MSD is computed over them plus the inlier camera
-        centres (DESIGN.md step 7: "over the common 3D points and common cameras").
+        centres (the common cameras are common points of the two models too).
     extent_a, extent_b: extent of the inlier cameras' centres in each frame (median distance to
         their geometric median), the MSD normalisers.
     """
@@ -120,8 +122,9 @@ class SimilarityResult:
 def mean_square_distance(
     scale: float, rotation: Array, translation: Array, points_a: Array, points_b: Array
 ) -> tuple[float, float]:
-    """(mse_ab, mse_ba) of the paper's Eq. 9, literally: mse_ab = 1/(2n) sqrt(sum_i |T X_a,i -
-    X_b,i|^2) with T = ``b_from_a``, and mse_ba likewise with T^-1 from b to a.
+    """(mse_ab, mse_ba) of the paper's Eq. 10 (section 3.2.2), literally: mse_ab = 1/(2n)
+    sqrt(sum_i |T X_a,i - X_b,i|^2) with T = ``b_from_a``, and mse_ba likewise with T^-1 from b
+    to a.
 
     Note the paper's odd normalisation: a square root of the sum divided by 2n (not the root
     mean square), so it shrinks as 1/sqrt(n) for a fixed per-point error. Unnormalised (in the
@@ -168,7 +171,8 @@ def _errors(sim: Sim3, hyp_rot: Array, ca: Array, cb: Array) -> tuple[Array, Arr
 def _fit(
     mask: Array, hyp_rot: Array, ca: Array, cb: Array, options: SimilarityOptions
 ) -> Sim3:
-    """Refit on the inliers (step 3 of the module docstring)."""
+    """Refit on the inliers (step 3 of the module docstring): rotation, Horn's scale and the
+    translation of Eq. 6 over all inlier cameras."""
     a0 = ca[mask] - ca[mask].mean(0)
     b0 = cb[mask] - cb[mask].mean(0)
     rotation = project_to_so3(hyp_rot[mask].sum(0))  # chordal L2 mean
@@ -189,7 +193,8 @@ def _ransac(
     extent_b: float,
     options: SimilarityOptions,
 ) -> Array | None:
-    """Inlier mask of the best single-camera hypothesis (steps 1-2), or None."""
+    """Inlier mask of the best single-camera hypothesis (steps 1-2 of the module docstring:
+    Eq. 1-2 anchored at the hypothesis camera, then Eq. 5-6), or None."""
     n = len(ca)
     hyps = np.arange(n)
     if n > options.max_hypotheses:
@@ -226,16 +231,16 @@ def estimate_similarity(
     points_b: Array | None = None,
     options: SimilarityOptions = SimilarityOptions(),
 ) -> SimilarityResult | None:
-    """Similarity ``b_from_a`` of two local models from their common cameras (paper 3.2.1,
-    Eq. 1-6; RANSAC and refit as in the module docstring) and its MSD edge weight (3.2.2,
-    Eq. 9-10, normalised by the extents as in DESIGN.md step 7).
+    """Similarity ``b_from_a`` of two local models from their common cameras (paper section
+    3.2.1, Eq. 1-6; RANSAC and refit as in the module docstring) and its MSD edge weight
+    (section 3.2.2, Eq. 10-11, normalised by the extents).
 
     rotations_* (N,3,3), translations_* (N,3): cam_from_world poses of the N common cameras in
     models a and b, row k the same image. points_* (P,3): the common 3D points, row i the same
     point (None or empty: none). The MSD is taken over these points plus the inlier camera
     centres (the centres alone when there are no points); mse_ab is divided by the inliers'
     extent in b, mse_ba by that in a, so weights compare across pairs of models of different
-    scales; msd = max of the two (the paper's Eq. 10 writes max(mse_k1k2, mse_k1k2), a typo for
+    scales; msd = max of the two (the paper's Eq. 11 writes max(mse_k1k2, mse_k1k2), a typo for
     the two directions).
 
     Returns None with fewer than ``min_common_cameras`` (or 2) common cameras, degenerate centres

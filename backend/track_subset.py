@@ -1,12 +1,11 @@
 """Which tracks a bundle adjustment needs (TheiaSfM's track subset selection).
 
 A camera's pose is fixed as well by a few hundred well-spread, well-measured points as by all
-of its thousands: past that, more observations cost time and memory in every LM iteration (in
-GTSAM about 1.3 KB each with METIS ordering) for a gain in accuracy that shrinks like one over
-the square root of their number.  So the global BAs while a model grows optimise the cameras
-on a subset of the tracks, and every other point is re-estimated afterwards with the cameras
-held (:func:`sfm.mapper.triangulation.refine_points`), which is exact for it: with its cameras fixed,
-a point is its own small problem.  (A final BA over too many observations is split instead,
+of its thousands: past that, more observations cost time and memory in every LM iteration for
+a gain in accuracy that shrinks like one over the square root of their number.  So the global
+BAs while a model grows optimise the cameras on a subset of the tracks, and every other point
+is re-estimated afterwards with the cameras held (:func:`sfm.mapper.triangulation.refine_points`),
+which is exact for it: with its cameras fixed, a point is its own small problem.  (A final BA over too many observations is split instead,
 ``backend.partitioned_ba``: on a nearly flat problem one subset's optimum lies too far from
 the full one.)
 

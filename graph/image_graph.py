@@ -1,4 +1,4 @@
-"""The weighted image graph of GraphSfM (paper Sec. 3.1.1).
+"""The weighted image graph of GraphSfM (paper section 3.1.1).
 
 Each image is a node (integer id ``0..n-1``); each verified image pair is an undirected edge
 ("image edge") whose weight is the number of inlier matches after geometric verification.
@@ -32,7 +32,7 @@ __all__ = [
 
 @dataclass(frozen=True, eq=False)
 class ImageGraph:
-    """Undirected weighted image graph (paper Sec. 3.1.1, "image edges").
+    """Undirected weighted image graph (paper section 3.1.1, "image edges").
 
     Attributes:
         num_nodes: number of images ``n``; node ids are ``0..n-1`` (isolated nodes allowed).
@@ -79,7 +79,7 @@ def build_image_graph(
     edges_j: npt.ArrayLike,
     weights: npt.ArrayLike,
 ) -> ImageGraph:
-    """Build the weighted image graph from verified pairs (paper Sec. 3.1.1).
+    """Build the weighted image graph from verified pairs (paper section 3.1.1).
 
     Args:
         num_nodes: number of images ``n``; every id must lie in ``0..n-1``.

@@ -1,14 +1,17 @@
-"""Merge plan of the local reconstructions: MinST + minimum-height-tree anchor (paper Sec. 3.2, Alg. 2).
+"""Merge plan of the local models: MinST + minimum-height-tree anchor (paper section 3.2, Alg. 2).
 
-Given the cluster graph (one node per cluster; an edge where two local models could be aligned,
-weighted by their residual error MSD, Eq. 10-11), the plan is:
+Given the cluster graph (Alg. 2, line 1: one node per cluster; an edge where two local models
+could be aligned, weighted by their residual error, the MSD of Eq. 11, the larger of the two
+directions' MSE of Eq. 10; section 3.2.2), the plan is:
 
 1. the Kruskal minimum spanning tree (Alg. 2, line 2) selects the ``N - 1`` most accurate
-   similarity transformations (Eq. 7-9: minimising the sum of ``-log p_ij``);
-2. the anchor (reference frame) is the root of a minimum height tree, found by peeling the
-   leaves layer by layer, each leaf merging into its only neighbour (Alg. 2, lines 4-7); when
-   one node remains it is the anchor; when two remain, the larger cluster is the anchor (ties:
-   the smaller id) and the other merges into it in the last layer (Alg. 2, lines 8-11);
+   similarity transformations (section 3.2.2, Eq. 7-9: minimising the sum of ``-log p_ij``
+   maximises the probability that every tree edge aligns);
+2. the anchor (reference frame) is the root of a minimum height tree (section 3.2.3), found by
+   peeling the leaves layer by layer, each leaf merging into its only neighbour (Alg. 2, lines
+   4-7); when one node remains it is the anchor; when two remain, the larger cluster is the
+   anchor (ties: the smaller id) and the other merges into it in the last layer (Alg. 2, lines
+   8-11);
 3. every cluster is transformed along its tree path to the anchor.
 
 The anchor is a centre of the tree, so it minimises the longest path any cluster's
@@ -64,7 +67,11 @@ class MergePlan:
 def minimum_spanning_edges(
     cluster_ids: Sequence[int], weights: Mapping[tuple[int, int], float]
 ) -> list[tuple[int, int, float]]:
-    """Kruskal minimum spanning forest of the cluster graph (Alg. 2, line 2).
+    """Kruskal minimum spanning forest of the cluster graph (paper section 3.2.3, Alg. 2, line 2).
+
+    Minimising the sum of the weights ``w_ij = -log p_ij`` (Eq. 9) maximises the probability
+    ``P`` that every tree edge aligns (Eq. 7-8); the MSD (Eq. 11) stands in for ``-log p_ij``,
+    since only the order of the weights decides the tree (section 3.2.2).
 
     Edges with infinite weight (or absent) cannot align and are not used. Both orientations
     of a pair may be given; the smaller weight counts. Ties go to the lexicographically
@@ -105,19 +112,25 @@ def plan_merges(
     cluster_ids: Sequence[int],
     sizes: Mapping[int, int],
     weights: Mapping[tuple[int, int], float],
+    anchor: int | None = None,
 ) -> list[MergePlan]:
-    """Plan the merges of local reconstructions: MinST, then MHT anchor (Alg. 2).
+    """Plan the merges of local reconstructions: MinST, then MHT anchor (paper section 3.2.3,
+    Alg. 2, lines 2-12).
 
     Args:
         cluster_ids: the clusters (distinct integer ids).
         sizes: size of every cluster (used to pick the anchor when two nodes remain).
         weights: alignment weight (MSD, Eq. 11) of cluster pairs ``(a, b)``; ``math.inf`` or
             an absent pair means the two clusters cannot be aligned.
+        anchor: a cluster given as the base node of its component (Alg. 2 with the anchor
+            given: an existing model that new clusters are merged into and that must not move);
+            that component's tree is rooted there instead of at a minimum-height-tree centre
+            (:func:`_plan_rooted`).  The other components are planned as without it.
 
     Returns:
         One :class:`MergePlan` per connected component of the MinST forest, ordered by total
-        size descending, ties by smallest cluster id. An isolated cluster is a plan of its own
-        with itself as anchor.
+        size descending, ties by smallest cluster id; with ``anchor``, its component first. An
+        isolated cluster is a plan of its own with itself as anchor.
     """
     ids = [int(c) for c in cluster_ids]
     if len(set(ids)) != len(ids):
@@ -125,6 +138,8 @@ def plan_merges(
     missing = [c for c in ids if c not in sizes]
     if missing:
         raise ValueError(f"no size for clusters {missing}")
+    if anchor is not None and int(anchor) not in ids:
+        raise ValueError(f"anchor {anchor} is not one of the clusters")
 
     mst_edges = minimum_spanning_edges(ids, weights)
     forest = nx.Graph()
@@ -134,8 +149,11 @@ def plan_merges(
     plans = []
     for comp in nx.connected_components(forest):
         comp_edges = tuple(e for e in mst_edges if e[0] in comp)
-        plans.append(_plan_tree(sorted(comp), comp_edges, sizes))
-    plans.sort(key=lambda p: (-p.total_size, p.clusters[0]))
+        if anchor is not None and int(anchor) in comp:
+            plans.append(_plan_rooted(sorted(comp), comp_edges, sizes, int(anchor)))
+        else:
+            plans.append(_plan_tree(sorted(comp), comp_edges, sizes))
+    plans.sort(key=lambda p: (p.anchor != anchor, -p.total_size, p.clusters[0]))
     logger.info(
         "merge plan: %d clusters, %d MinST edges, %d components, anchors %s",
         len(ids),
@@ -149,7 +167,7 @@ def plan_merges(
 def _plan_tree(
     nodes: list[int], edges: tuple[tuple[int, int, float], ...], sizes: Mapping[int, int]
 ) -> MergePlan:
-    """Minimum height tree anchor of one tree by peeling leaves (Alg. 2, lines 3-14)."""
+    """Minimum height tree anchor of one tree by peeling leaves (Alg. 2, lines 3-12)."""
     neighbours: dict[int, set[int]] = {v: set() for v in nodes}
     for a, b, _ in edges:
         neighbours[a].add(b)
@@ -184,12 +202,7 @@ def _plan_tree(
     parent[anchor] = None
     layer[anchor] = num_layers
 
-    path: dict[int, tuple[int, ...]] = {}
-    for v in nodes:
-        chain = [v]
-        while parent[chain[-1]] is not None:
-            chain.append(parent[chain[-1]])  # type: ignore[arg-type]
-        path[v] = tuple(chain)
+    path = _paths_to_root(nodes, parent)
 
     return MergePlan(
         anchor=anchor,
@@ -201,4 +214,55 @@ def _plan_tree(
         path=path,
         edges=edges,
         merge_order=tuple(merge_order),
+    )
+
+
+def _paths_to_root(nodes: list[int], parent: Mapping[int, int | None]) -> dict[int, tuple[int, ...]]:
+    """Each node's chain of parents up to the root (itself first, the root last)."""
+    path: dict[int, tuple[int, ...]] = {}
+    for v in nodes:
+        chain = [v]
+        while parent[chain[-1]] is not None:
+            chain.append(parent[chain[-1]])  # type: ignore[arg-type]
+        path[v] = tuple(chain)
+    return path
+
+
+def _plan_rooted(
+    nodes: list[int], edges: tuple[tuple[int, int, float], ...], sizes: Mapping[int, int], anchor: int
+) -> MergePlan:
+    """Alg. 2 with the base node given (lines 3-12 peel the leaves until one node is left; here
+    that node is ``anchor``): the MinST is rooted at ``anchor``, every other node merges into its
+    neighbour towards it, and a node merges in the layer after the last of its own children
+    (a leaf in layer 1), so the layers are the peeling order of Alg. 2 that ends at ``anchor``."""
+    neighbours: dict[int, list[int]] = {v: [] for v in nodes}
+    for a, b, _ in edges:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    parent: dict[int, int | None] = {anchor: None}
+    order = [anchor]  # breadth first from the anchor, neighbours by id
+    for v in order:
+        for w in sorted(neighbours[v]):
+            if w not in parent:
+                parent[w] = v
+                order.append(w)
+    height = {v: 0 for v in nodes}
+    for v in reversed(order[1:]):
+        p = parent[v]
+        height[p] = max(height[p], height[v] + 1)  # type: ignore[index]
+    layer = {v: height[v] + 1 for v in nodes if v != anchor}
+    num_layers = height[anchor]
+    layer[anchor] = num_layers
+    path = _paths_to_root(nodes, parent)
+    merge_order = tuple((v, parent[v]) for v in sorted((v for v in nodes if v != anchor), key=lambda v: (layer[v], v)))
+    return MergePlan(
+        anchor=anchor,
+        clusters=tuple(nodes),
+        total_size=sum(int(sizes[v]) for v in nodes),
+        parent={v: parent[v] for v in nodes},
+        layer=layer,
+        num_layers=num_layers,
+        path=path,
+        edges=edges,
+        merge_order=merge_order,  # type: ignore[arg-type]
     )

@@ -1,8 +1,9 @@
-"""Normalized-cut partition of the image graph into cluster cores (paper Sec. 3.1, Alg. 1, lines 1-2).
+"""NCut partition of the image graph into cluster cores (paper section 3.1.1, Alg. 1, lines 1-2).
 
 The paper cuts the image graph once with NCut (Shi & Malik) into ``K = floor(n / S_max)``
-clusters. That ``K`` makes the average cluster larger than its bound ``S_max``, so (DESIGN.md,
-step 5) we take ``K = ceil(n / S_max)`` per connected component and then:
+clusters (Alg. 1, line 1). That ``K`` makes the average cluster larger than its bound ``S_max``,
+so we take ``K = ceil(n / S_max)`` per connected component (a departure from the paper) and
+then:
 
 1. K-way spectral clustering of the component (normalized Laplacian embedding, sparse ARPACK
    eigensolver with a seeded start vector, ``cluster_qr`` label assignment: deterministic);
@@ -13,7 +14,10 @@ step 5) we take ``K = ceil(n / S_max)`` per connected component and then:
 4. tiny fragments (smaller than ``min_fragment_size``) are merged into the neighbouring part
    they share most edge weight with, as long as the merged part stays within ``S_max``.
 
-A component of size ``<= S_max`` is one cluster. No dense ``n x n`` matrix is ever built.
+A component of size ``<= S_max`` is one cluster, and so is a component of at most
+``max_whole_component`` nodes (the expanded-cluster bound when the cores are cut smaller to leave
+the expansion room, ``graph.expansion.core_size_bound``: a component that fits one cluster needs
+no cut and no merge). No dense ``n x n`` matrix is ever built.
 """
 
 from __future__ import annotations
@@ -49,12 +53,13 @@ def partition_graph(
     max_cluster_size: int,
     seed: int = 0,
     min_fragment_size: int | None = None,
+    max_whole_component: int | None = None,
 ) -> list[np.ndarray]:
-    """Partition the image graph into cores of at most ``max_cluster_size`` images.
+    """Partition the image graph into cores of at most ``max_cluster_size`` images (section 3.1.1).
 
     Implements Alg. 1, lines 1-2 (GraphPartition by NCut) with ``K = ceil(n / S_max)`` per
-    connected component and recursive normalized 2-way cuts of parts above ``S_max``
-    (DESIGN.md, step 5); see the module docstring for the four steps.
+    connected component and recursive normalized 2-way cuts of parts above ``S_max``; see the
+    module docstring for the four steps and why ``K`` departs from the paper's floor.
 
     Args:
         graph: the weighted image graph.
@@ -63,19 +68,23 @@ def partition_graph(
             partition.
         min_fragment_size: parts smaller than this are merged into a neighbour when the bound
             allows; default ``max(1, S_max // 4)``.
+        max_whole_component: a connected component of at most this many nodes is one core
+            even when larger than ``S_max`` (default: ``S_max``).
 
     Returns:
-        Disjoint sorted int64 arrays of node ids covering ``0..n-1``, each of size
-        ``<= S_max``, ordered by their smallest member.
+        Disjoint sorted int64 arrays of node ids covering ``0..n-1``, ordered by their
+        smallest member; each of size ``<= S_max`` unless it is a whole component of at most
+        ``max_whole_component`` nodes.
     """
     s_max = int(max_cluster_size)
     if s_max < 1:
         raise ValueError(f"max_cluster_size must be >= 1, got {max_cluster_size!r}")
     min_frag = max(1, s_max // 4) if min_fragment_size is None else int(min_fragment_size)
+    whole = s_max if max_whole_component is None else max(s_max, int(max_whole_component))
 
     clusters: list[np.ndarray] = []
     for comp in connected_components(graph):
-        if comp.size <= s_max:
+        if comp.size <= whole:
             clusters.append(comp)
             continue
         if s_max == 1:
@@ -125,7 +134,7 @@ def labels_from_clusters(clusters: list[np.ndarray], num_nodes: int) -> np.ndarr
 
 
 def fiedler_vector(adjacency: sp.spmatrix, seed: int = 0) -> np.ndarray:
-    """Relaxed NCut indicator of a connected graph (Shi & Malik; paper Sec. 3.1.1).
+    """Relaxed NCut indicator of a connected graph (Shi & Malik; paper section 3.1.1).
 
     Returns ``y = D^{-1/2} u2`` where ``u2`` is the eigenvector of the second smallest
     eigenvalue of the normalized Laplacian ``I - D^{-1/2} A D^{-1/2}``; its sign is fixed so
@@ -153,11 +162,11 @@ def fiedler_vector(adjacency: sp.spmatrix, seed: int = 0) -> np.ndarray:
 
 
 def _spectral_kway(adj: sp.csr_matrix, k: int, seed: int) -> np.ndarray:
-    """K-way normalized spectral clustering of a connected graph (Alg. 1, line 2)."""
+    """K-way normalized spectral clustering of a connected graph (section 3.1.1, Alg. 1, line 2)."""
     if k <= 1:
         return np.zeros(adj.shape[0], dtype=np.int64)
-    # imported here: scikit-learn takes a second or two to import, and a scene that fits in
-    # one cluster never gets this far
+    # imported here: scikit-learn is slow to import, and a scene that fits in one cluster
+    # never gets this far
     from sklearn.cluster import SpectralClustering
 
     model = SpectralClustering(
@@ -209,7 +218,8 @@ def _bisect_recursive(
 def ncut_bisect(sub: sp.spmatrix, s_max: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Best normalized 2-way cut of a connected graph along its sorted Fiedler vector.
 
-    The Shi & Malik sweep used for parts still above ``S_max`` (DESIGN.md, step 5).
+    The Shi & Malik sweep used for parts still above ``S_max`` (step 3 of the module docstring;
+    Alg. 1, line 2, with the departure the module docstring explains).
 
     Splits ``n`` nodes into ``i`` and ``n - i`` with both sides non-empty and
     ``ceil(i / S) + ceil((n - i) / S) == ceil(n / S)``, so recursion keeps ``K`` minimal;

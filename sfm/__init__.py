@@ -1,6 +1,7 @@
 """graphsfm's application: images in, cameras and a 3D point cloud out (GraphSfM, paper Figure 1).
 
-``sfm.reconstruct(images, workspace, **options)`` runs every stage; ``sfm.run_extract``,
+``sfm.reconstruct(images, workspace, **options)`` runs every stage, ``sfm.extend(workspace,
+images, **options)`` adds new photos to a finished model; ``sfm.run_extract``,
 ``run_match``, ``run_cluster``, ``run_map`` and ``run_merge`` run one each (``sfm.api``).  The
 command line (``sfm.cli``) is the same functions behind flags.
 
@@ -14,7 +15,7 @@ in a cycle):
     3. sfm.features, sfm.matching, sfm.clustering, sfm.evaluation, sfm.synthetic
     4. sfm.mapper
     5. sfm.merge
-    6. sfm.stages
+    6. sfm.stages, sfm.console
     7. sfm.api, sfm.cli
 
 - ``core``: the data model (cameras, images, points with tracks), rigid geometry, the options
@@ -28,7 +29,8 @@ in a cycle):
 - ``mapper``: incremental SfM of one cluster (section 3.2).  ``merge``: the cluster graph, the
   merge plan and the refinement of the merged model (section 3.2, Alg. 2).
 - ``stages``: one module per stage (``extract``, ``match``, ``cluster``, ``map``, ``merge``,
-  ``reconstruct``, ``synth``, ``demo``), the only code that writes the workspace.
+  ``reconstruct``, ``extend``, ``synth``, ``demo``), the only code that writes the workspace.
+  ``console``: what a command shows on the terminal and keeps in ``WORK/log.txt``.
 - ``graph`` and ``backend`` (top-level packages beside ``sfm``) are array libraries: the graph
   algorithms (NCut, MaxST expansion, MinST, minimum-height tree) and the numerical optimisation
   (GTSAM bundle adjustment, Sim3 estimation).  They never import ``sfm`` nor each other.
@@ -43,8 +45,11 @@ Conventions, everywhere:
   image corner at (0, 0): keypoints and principal points are shifted by 0.5 when written and
   read (``sfm.io``), nowhere else.
 - Cameras are COLMAP camera models (``backend.camera_models``): ``SIMPLE_RADIAL`` with an
-  EXIF focal prior (else 1.2 x the longer side) by default, ``PINHOLE`` held fixed for
-  intrinsics the user gives.
+  EXIF focal prior (else 1.2 x the longer side) by default, or the ``camera_model`` asked for
+  (SIMPLE_PINHOLE, PINHOLE, RADIAL, OPENCV), ``PINHOLE`` held fixed for intrinsics the user gives.
+- GPS: EXIF positions are the database's WGS84 pose priors; a final model with three or more
+  is georegistered into a local east-north-up frame in metres (origin in
+  ``sparse/N/georegistration.json`` and ``report.json``).
 - Images are named by their path relative to the image folder; integer ids are the database's.
 - Randomness comes only from a ``seed`` option: the same input and seed give the same files,
   with any number of workers.
@@ -62,9 +67,29 @@ was read but no model could be made.
 
 from __future__ import annotations
 
-_API = ("reconstruct", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
+
+def _version() -> str:
+    """The installed distribution's version (pyproject.toml's, the one source); a checkout that
+    is not installed reads it from the pyproject.toml beside the package."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("graphsfm")
+    except PackageNotFoundError:
+        import re
+        from pathlib import Path
+
+        pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+        found = re.search(r'^version\s*=\s*"([^"]+)"', pyproject.read_text(), re.M) if pyproject.is_file() else None
+        return found.group(1) if found else "unknown"
+
+
+__version__ = _version()
+
+_API = ("reconstruct", "extend", "make_options", "run_extract", "run_match", "run_cluster", "run_map", "run_merge",
+        "export", "info", "align",
         "ExtractOptions", "MatchOptions", "ClusterOptions", "MapperOptions", "MergeOptions", "ExecutionOptions",
-        "RecordingOptions", "Reconstruction", "read_model")
+        "RecordingOptions", "ExportOptions", "AlignOptions", "ExtendOptions", "Reconstruction", "read_model")
 
 
 def __getattr__(name: str):

@@ -1,5 +1,5 @@
 """Bad input through the command line, as a user meets it: one clear line, never a traceback,
-DESIGN.md's exit codes (0 model written, 2 no usable input, 3 input read but no model), and
+the exit codes of ``sfm.errors`` (0 model written, 2 no usable input, 3 input read but no model), and
 the bad files skipped by name while the good ones still give a model."""
 
 from __future__ import annotations

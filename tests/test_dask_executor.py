@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -63,3 +65,21 @@ def test_dask_extract_and_match_write_the_same_database(tmp_path):
         for pair in ga:
             assert ga[pair].config == gb[pair].config
             np.testing.assert_array_equal(ga[pair].inlier_matches, gb[pair].inlier_matches)
+
+
+def test_dask_workers_log_lines_reach_the_client_tagged_with_their_cluster(tmp_path, caplog):
+    """A task's log records return with its result and are handled by the client's loggers, with
+    the cluster they come from (``sfm.execution.logs``)."""
+    import os
+
+    run_synth(tmp_path, SynthOptions(scene="aerial", num_images=24, observations_per_image=400, seed=3))
+    names = sorted(f"aerial_{i:05d}.jpg" for i in range(24))
+    payloads = load_payloads(tmp_path / "database.db", [names[:14], names[10:]], True, 15)
+    tasks = [(p, MapperOptions()) for p in payloads]
+    with caplog.at_level("INFO"), DaskExecutor(workers=2) as executor:
+        results = list(executor.map(map_cluster, tasks, ordered=False, errors="return"))
+    assert all(r.error is None for r in results)
+    starts = [r for r in caplog.records if "initial pair" in r.getMessage()]
+    assert sorted(r.task for r in starts) == sorted(p.label for p in payloads)
+    assert all(r.process != os.getpid() and r.name == "sfm.mapper.state" for r in starts)
+    assert not [r for r in caplog.records if r.levelno < logging.INFO and r.process != os.getpid()]

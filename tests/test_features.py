@@ -155,7 +155,7 @@ def test_downscaled_keypoints_map_to_full_resolution(tmp_path):
 def test_sift_sees_only_the_downscaled_image(tmp_path, monkeypatch):
     seen = []
     real = features.detect_sift
-    monkeypatch.setattr(features, "detect_sift", lambda g, o: seen.append(g.shape) or real(g, o))
+    monkeypatch.setattr(features, "detect_sift", lambda g, o, m=None: seen.append(g.shape) or real(g, o, m))
     big = cv2.resize(textured(300, 400, 5), (4000, 3000), interpolation=cv2.INTER_LINEAR)
     write(tmp_path / "img" / "big.jpg", big, quality=90)
     run_extract(

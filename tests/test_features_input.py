@@ -15,7 +15,8 @@ from sfm.execution.local import LocalExecutor
 from sfm.errors import InputError
 from sfm.features.options import ExtractOptions
 from sfm.stages.extract import run_extract
-from sfm.io.image_files import find_images, focal_prior_from_exif, read_gray
+from sfm.io.exif import focal_prior_from_exif
+from sfm.io.image_files import find_images, read_gray
 
 
 # ------------------------------------------------------------------------- EXIF

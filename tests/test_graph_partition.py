@@ -90,6 +90,21 @@ def test_disconnected_components_are_partitioned_separately():
     assert [c.tolist() for c in clusters][-1] == [200]
 
 
+def test_a_component_within_max_whole_component_is_not_cut():
+    a = aerial_graph(5, 6)  # 30 nodes
+    b = aerial_graph(10, 10)  # 100 nodes
+    ia, ja, wa = a.edges()
+    ib, jb, wb = b.edges()
+    g = build_image_graph(130, np.r_[ia, ib + 30], np.r_[ja, jb + 30], np.r_[wa, wb])
+    clusters = partition_graph(g, max_cluster_size=20, max_whole_component=40)
+    assert clusters[0].tolist() == list(range(30))  # 30 <= 40: whole, though above 20
+    assert all(c.size <= 20 for c in clusters[1:]) and len(clusters) >= 1 + 5
+    assert sorted(np.concatenate(clusters).tolist()) == list(range(130))
+    # a bound below max_cluster_size changes nothing
+    assert [c.tolist() for c in partition_graph(g, 20, max_whole_component=10)] == [
+        c.tolist() for c in partition_graph(g, 20)]
+
+
 def test_cut_weight_and_labels():
     g = build_image_graph(4, [0, 1, 2, 0], [1, 2, 3, 3], [5, 6, 7, 8])
     assert cut_weight(g, [0, 0, 1, 1]) == 6 + 8

@@ -22,8 +22,10 @@ def test_reconstruct_from_database_with_clusters(tmp_path):
     assert main(["reconstruct", "--workspace", str(tmp_path), "--max-cluster-size", "35", "--workers", "2"]) == 0
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["num_clusters"] >= 3 and report["num_models"] == 1
-    for key in ("T_GC", "T_SfM", "T_merge", "T_BA", "total"):
-        assert key in report["times"]
+    for key in ("cluster", "map", "merge", "final_ba"):
+        assert report["times_s"][key] > 0
+    assert report["times_s"]["total"] == pytest.approx(sum(v for k, v in report["times_s"].items() if k != "total"),
+                                                      abs=0.01)
     assert report["executor"] == "local" and all(c["worker"] for c in report["clusters"])
     model = read_model(tmp_path / "sparse" / "0")
     result = evaluate(model, read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
@@ -35,8 +37,8 @@ def test_reconstruct_from_database_with_clusters(tmp_path):
     assert component["anchor"] in component["clusters"]
     assert all(e["msd"] >= 0 for e in merge["edges"])
     paths = entity_paths(tmp_path / "recording.rrd")
-    assert {"/graph/images", "/graph/clusters", "/graph/clusters/merge", "/world/points"} <= paths
-    assert any(p.startswith("/clusters/C0/cams/") for p in paths) and any(p.startswith("/merge/") for p in paths)
+    assert {"/graph/images", "/graph/clusters", "/graph/merge", "/world/points", "/tour"} <= paths
+    assert any(p.startswith("/clusters/C0/model0/cams/") for p in paths) and any(p.startswith("/merge/") for p in paths)
     assert any(p.startswith("/world/cams/") for p in paths)
 
 

@@ -1,4 +1,4 @@
-"""Pairwise similarity of two local models (paper 3.2.1) and its MSD weight (3.2.2, Eq. 9-10).
+"""Pairwise similarity of two local models (paper 3.2.1) and its MSD weight (3.2.2, Eq. 10-11).
 
 Scene: 20 cameras on a sphere of radius 8 looking at 500 points in a cube of side 4; model b is
 model a mapped by a known Sim3 (scale 2.7), written independently of the module's helpers.
@@ -206,7 +206,7 @@ def test_msd_grows_with_point_noise(pair):
         msds.append(res.msd)
         assert abs(res.scale - SCALE) < 1e-9  # the transform comes from the cameras alone
     assert msds[0] < 1e-12 and all(x < y for x, y in itertools.pairwise(msds))
-    # Eq. 9 literally, normalised by the target extent: 1/(2n) sqrt(sum |e|^2) / extent_b.
+    # Eq. 10 literally, normalised by the target extent: 1/(2n) sqrt(sum |e|^2) / extent_b.
     n = 500 + 20  # common points plus inlier camera centres
     expected = 0.2 * np.sqrt((noise**2).sum()) / (2 * n) / res.extent_b
     assert res.mse_ab == pytest.approx(expected, rel=1e-9)

@@ -1,5 +1,5 @@
 """Track subset selection for large bundle adjustments, and re-estimating the other points with
-the cameras held (backend/track_subset.py, sfm/triangulation.refine_points)."""
+the cameras held (backend/track_subset.py, sfm/mapper/triangulation.py: refine_points)."""
 
 from __future__ import annotations
 

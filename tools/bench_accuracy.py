@@ -24,7 +24,7 @@ Per set the table has registered images (of the GT's), the median rotation error
 time, and a verdict: graphsfm's AUC@1 and AUC@5 against COLMAP's best mapper (the highest value
 over COLMAP's rows, per threshold), and the forced-cluster run against the same (within 0.01).
 Images graphsfm did not register and models it did not merge are listed with the step that
-failed (``unregistered_images`` / ``unmerged_models`` of ``report.json``).
+failed (``unregistered`` and ``warnings`` of ``report.json``).
 """
 
 from __future__ import annotations
@@ -104,10 +104,10 @@ def colmap_frontend(images: Path, workspace: Path, threads: int) -> tuple[Path, 
 
 
 def failures(report: dict) -> list[str]:
-    """One line per image that did not register and per model that was not merged."""
-    lines = [f"{u['image']} (cluster {u['cluster']}): {u['reason']}" for u in report.get("unregistered_images", [])]
-    lines += [f"models {m.get('models')}: {m.get('reason')}" for m in report.get("unmerged_models", [])]
-    return lines
+    """One line per image in no final model (with ``report.json``'s reason) and per warning of
+    the run (a cluster that failed, models that did not merge)."""
+    lines = [f"{u['name']}: {u['reason']}" for u in report.get("unregistered", [])]
+    return lines + list(report.get("warnings", []))
 
 
 def verdict(rows: list[dict], gt_count: int) -> list[str]:

@@ -41,9 +41,9 @@ def run_graphsfm(images: Path, workspace: Path, options: dict, recording: bool) 
     t0 = time.perf_counter()
     _, report = reconstruct(images, workspace, recording=recording, **options)
     total = time.perf_counter() - t0
-    times = report.get("times", {})
-    rest = sum(times.get(k, 0.0) for k in ("T_GC", "T_SfM", "T_merge", "T_BA"))
-    stages = {"extract_s": times.get("T_feat"), "match_s": times.get("T_match"), "map_s": rest}
+    times = report.get("times_s", {})
+    rest = sum(times.get(k, 0.0) for k in ("cluster", "map", "merge", "final_ba"))
+    stages = {"extract_s": times.get("extract"), "match_s": times.get("match"), "map_s": rest}
     return {"stages": stages, "total": total, "model": workspace / "sparse" / "0",
             "label": f"graphsfm reconstruct ({report.get('num_clusters', 1)} clusters)"}
 

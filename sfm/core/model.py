@@ -1,6 +1,6 @@
 """The reconstruction data model: cameras, images, 3D points with tracks.
 
-Conventions (DESIGN.md):
+Conventions (those of the whole ``sfm`` package, stated in its docstring):
 
 * ``Image.cam_from_world_rotation`` / ``cam_from_world_translation``: ``x_cam = R @ X + t``
   (COLMAP's images.txt).  The camera centre is ``-R.T @ t``.

@@ -1,7 +1,7 @@
 """Robust Sim3 alignment of estimated camera centres onto ground-truth ones.
 
 A reconstruction is only defined up to a similarity, so absolute pose errors are measured after
-a ``gt_from_est`` :class:`~backend.geometry.Sim3` with ``gt_centers ≈ sim.apply(est_centers)``,
+a ``gt_from_est`` :class:`~backend.sim3.Sim3` with ``gt_centers ≈ sim.apply(est_centers)``,
 estimated on camera centres by RANSAC over 3-point Umeyama fits with MSAC scoring and local
 refinement (:func:`align_centers`), so a minority of badly placed cameras does not bias it.
 
@@ -210,8 +210,9 @@ def refine_rotation_with_orientations(sim: Sim3, est_rot: np.ndarray, gt_rot: np
     scale and translation from their centres with that rotation fixed.
 
     Camera centres alone leave the rotation about their line undetermined when they are close to
-    collinear (lund_door's arc: second/first singular value 0.075), so a centre error of 1e-4
-    of the extent becomes a rotation error of ~0.1 degrees in every image.  Each orientation
+    collinear (cameras along a short arc or a street): the roll about that line is then fixed
+    only by the centres' small spread across it, so a tiny centre error becomes a rotation error
+    of every image, larger the thinner the spread.  Each orientation
     gives the alignment rotation directly (``R_gt^T R_est``); their geodesic median is robust to
     a few wrong cameras.  Centres still select the inliers.
     """

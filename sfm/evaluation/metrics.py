@@ -2,9 +2,10 @@
 
 Poses are ``cam_from_world`` (centre ``C = -R.T @ t``) and images are matched to ground truth by
 name, as in :mod:`sfm.evaluation.ground_truth` (which reads GT tables and models); an image counts as
-registered when it is in the reconstruction and ``Image.registered`` (DESIGN.md).
+registered when it is in the reconstruction and ``Image.registered``.
 
-Metrics (the "Pose accuracy" rule of DESIGN.md):
+Metrics (the project's one rule for pose accuracy, used by ``graphsfm evaluate``, the tests and
+the benchmarks alike):
 
 * Registration: registered GT images / GT images.
 * Absolute errors, after the robust Sim3 ``gt_from_est`` (:func:`sfm.evaluation.alignment.align_centers`
@@ -288,8 +289,8 @@ def evaluate(
 
     ``alignment_threshold`` (GT units) defaults to :func:`default_alignment_threshold` of all GT
     centres; ``seed`` drives the alignment's RANSAC.  Registered images whose names are not in
-    ``gt`` are only counted.  Work and memory for the pairs are streamed in blocks (4,000 images,
-    8M pairs: a few seconds, well under 1 GB).
+    ``gt`` are only counted.  The N(N-1)/2 pairs are streamed in blocks of
+    ``_PAIRS_PER_BLOCK``, so memory stays bounded whatever the number of images.
     """
     thresholds = [float(t) for t in auc_thresholds]
     _AucAccumulator(thresholds)  # validates the thresholds before any work

@@ -25,17 +25,20 @@ from typing import Any
 
 from sfm.errors import InputError
 from sfm.execution.local import TaskResult, run_task, single_threaded
+from sfm.execution.logs import collect_records, replay
 
 log = logging.getLogger(__name__)
 
 
-def _remote_task(func: Callable[[Any], Any], item: Any, catch: bool) -> tuple[Any, str | None, str]:
-    """Worker side: one task, single-threaded, tagged with the Dask worker's address."""
+def _remote_task(func: Callable[[Any], Any], item: Any, catch: bool, level: int) -> tuple[Any, str | None, str, list]:
+    """Worker side: one task, single-threaded, tagged with the Dask worker's address, with the
+    log records it made at ``level`` and above (``sfm.execution.logs``)."""
     from distributed import get_worker
 
     single_threaded()
-    value, error, _ = run_task(func, item, catch)
-    return value, error, get_worker().address
+    with collect_records(level) as records:
+        value, error, _ = run_task(func, item, catch)
+    return value, error, get_worker().address, records
 
 
 class DaskExecutor:
@@ -90,6 +93,7 @@ class DaskExecutor:
             raise ValueError(f"errors must be 'raise' or 'return', got {errors!r}")
         client = self.client()
         catch = errors == "return"
+        level = logging.getLogger().getEffectiveLevel()
         window = 2 * self.num_workers()
         run_id = uuid.uuid4().hex[:8]  # task keys "sfm-<task>-<index>-<run>": readable on the dashboard
         source = enumerate(items)
@@ -104,7 +108,7 @@ class DaskExecutor:
             with warnings.catch_warnings():  # a payload is its task's data: it travels with the task
                 warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
                 key = f"sfm-{getattr(func, '__name__', 'task')}-{nxt[0]}-{run_id}"
-                future = client.submit(_remote_task, func, nxt[1], catch, key=key, pure=False, retries=1)
+                future = client.submit(_remote_task, func, nxt[1], catch, level, key=key, pure=False, retries=1)
             in_flight[future] = nxt[0]
             order.append(future)
             finished.add(future)
@@ -118,11 +122,12 @@ class DaskExecutor:
                     order.remove(future)
                 index = in_flight.pop(future)
                 try:
-                    value, error, worker = future.result()
+                    value, error, worker, records = future.result()
                 except Exception as exc:  # noqa: BLE001 - failed twice (retries=1)
                     if not catch:
                         raise
-                    value, error, worker = None, f"{type(exc).__name__}: {exc}", ""
+                    value, error, worker, records = None, f"{type(exc).__name__}: {exc}", "", []
+                replay(records)
                 submit_next()
                 yield TaskResult(index, value, error, worker)
         finally:

@@ -18,8 +18,9 @@ failed cluster must not stop the others).  A worker process that dies (killed by
 memory, say) raises :class:`WorkerDied`.
 
 Each worker process runs one task at a time with OpenCV's and BLAS's own threads limited to one
-(:func:`single_threaded`): the parallelism is across processes.  One worker runs the tasks in
-this process.
+(:func:`single_threaded`): the parallelism is across processes.  Its log messages and progress
+events reach this process as they are made (``sfm.execution.logs``).  One worker runs the
+tasks in this process.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
+from sfm.execution.logs import forwarded_logs, init_worker
 from sfm.execution.process_pool import pool_context
 
 log = logging.getLogger(__name__)
@@ -72,6 +74,12 @@ def single_threaded() -> None:
         threadpool_limits(1)
     except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
         pass
+
+
+def _init_pool_worker(queue, level: int) -> None:
+    """A local pool worker: its logs go to the parent (``sfm.execution.logs``), one thread."""
+    init_worker(queue, level)
+    single_threaded()
 
 
 def run_task(func: Callable[[Any], Any], item: Any, catch: bool) -> tuple[Any, str | None, str]:
@@ -120,15 +128,18 @@ class LocalExecutor:
                 value, error, worker = run_task(func, item, catch)
                 yield TaskResult(index, value, error, worker)
             return
-        pool = ProcessPoolExecutor(size, mp_context=pool_context(), initializer=single_threaded)
-        finished = False
-        try:
-            yield from _pooled(pool, func, items, 2 * size, ordered, catch)
-            finished = True
-        except BrokenProcessPool as exc:
-            raise WorkerDied("a worker process died (out of memory?)") from exc
-        finally:
-            pool.shutdown(wait=finished, cancel_futures=True)
+        context = pool_context()
+        with forwarded_logs(context) as (queue, level):
+            pool = ProcessPoolExecutor(size, mp_context=context, initializer=_init_pool_worker,
+                                       initargs=(queue, level))
+            finished = False
+            try:
+                yield from _pooled(pool, func, items, 2 * size, ordered, catch)
+                finished = True
+            except BrokenProcessPool as exc:
+                raise WorkerDied("a worker process died (out of memory?)") from exc
+            finally:
+                pool.shutdown(wait=finished, cancel_futures=True)
 
     def close(self) -> None:
         """Nothing to close: each :meth:`map` opens and closes its own pool."""

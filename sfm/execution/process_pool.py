@@ -1,9 +1,9 @@
 """The start method of this package's local process pools (extract, match, map).
 
 ``forkserver`` where the platform has it: one server process imports the pipeline once
-(``PRELOAD``), and every pool's workers are forked from it, so a pool starts in about 15 ms
-instead of the 0.3-0.5 s a ``spawn`` pool spends starting interpreters and importing OpenCV,
-NumPy and GTSAM in each worker, for every stage.  The server holds no threads of ours when it
+(``PRELOAD``), and every pool's workers are forked from it, so a pool starts with its imports
+done instead of starting interpreters and importing OpenCV, NumPy and GTSAM in each worker, for
+every stage, as a ``spawn`` pool does.  The server holds no threads of ours when it
 forks (it is a fresh interpreter, not the caller), which is what makes forking safe with
 OpenCV's and BLAS's thread pools.  ``spawn`` elsewhere (Windows).  Either way, scripts need the
 ``if __name__ == "__main__":`` guard.
@@ -13,8 +13,8 @@ defined there unpickle).  The server's own ``"__main__"`` preload never happens 
 3.11 (``forkserver.ensure_running`` forwards a ``main_path`` key that
 ``spawn.get_preparation_data`` calls ``init_main_from_path``), so what that module imports
 must already be in the server: ``PRELOAD`` holds ``sfm.api``, which imports every stage.  With
-only the worker modules there, each pool of ``graphsfm reconstruct`` or of a script importing
-``sfm.api`` waited 0.5-0.7 s for its workers to import the rest again.
+only the worker modules there, the workers of each pool of ``graphsfm reconstruct`` or of a
+script importing ``sfm.api`` would import the rest again before their first task.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Which camera each image gets: the ``--intrinsics`` file, EXIF priors and camera grouping.
 
-The intrinsics file (DESIGN.md) has lines ``IMAGE_NAME WIDTH HEIGHT FX FY CX CY [more columns
+The intrinsics file (``--intrinsics``) has lines ``IMAGE_NAME WIDTH HEIGHT FX FY CX CY [more columns
 ignored]``; ``#`` lines and blank lines are skipped; the name ``*`` applies a line to every image
 no other line names; the principal point uses OpenCV's pixel convention (pixel centres at
 integers), like every pixel in graphsfm. The ground-truth tables ``gt/cameras_gt_opencv.txt``
@@ -10,16 +10,19 @@ Cameras (:func:`assign_cameras`):
 
 - An image named by the file gets a ``PINHOLE (fx, fy, cx, cy)`` camera with
   ``prior_focal_length`` True; images whose lines hold the same values share one camera.
-- Any other image gets ``SIMPLE_RADIAL (f, cx, cy, k)`` with ``cx, cy = ((W-1)/2, (H-1)/2)``,
-  ``k = 0`` and ``f`` the EXIF prior (``prior_focal_length`` True) or ``1.2 * max(W, H)``
-  (False). ``camera_mode`` groups these images: ``auto`` one camera per (size, EXIF make and
+- Any other image gets a camera of ``camera_model`` (``--camera-model``, COLMAP's names:
+  ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL`` (the default), ``RADIAL``, ``OPENCV``) with
+  ``cx, cy = ((W-1)/2, (H-1)/2)``, no distortion, and every focal length the EXIF prior
+  (``prior_focal_length`` True) or ``1.2 * max(W, H)`` (False); bundle adjustment refines what
+  ``MapperOptions.intrinsics_refinement`` says. ``camera_mode`` groups these images: ``auto`` one camera per (size, EXIF make and
   model, focal prior); ``single`` one camera for all (all must have the same upright size);
   ``per-folder`` one per sub-folder (same-size rule); ``per-image`` one per image. A shared
   camera takes the focal prior of its first image (by name) that has an EXIF prior.
 - With ``per-folder`` and ``per-image`` the PINHOLE cameras are split the same way, so each
   folder or image can be refined on its own.
 
-Each camera has a group key (a JSON string) so a resumed run finds the camera it made before.
+Each camera has a group key (a JSON string) so a resumed run finds the camera it made before;
+``CameraSpec.given`` marks the cameras of the intrinsics file, which the mapper holds fixed.
 """
 
 from __future__ import annotations
@@ -31,12 +34,15 @@ import posixpath
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from backend.camera_models import CAMERA_MODELS, default_params
 from sfm.errors import InputError
 from sfm.io.image_files import ImageInfo
 
 logger = logging.getLogger(__name__)
 
 CAMERA_MODES = ("auto", "single", "per-folder", "per-image")
+CAMERA_MODEL_NAMES = tuple(CAMERA_MODELS)  # SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV
+DEFAULT_CAMERA_MODEL = "SIMPLE_RADIAL"
 DEFAULT_FOCAL_FACTOR = 1.2  # focal = 1.2 * max(W, H) without an EXIF prior (COLMAP's default)
 
 
@@ -128,7 +134,8 @@ class CameraSpec:
     """A camera to create: model, upright size, params (OpenCV pixel convention), prior flag.
 
     ``key`` identifies its group; ``shared`` is False for per-image cameras (found again
-    through the image's row, so a resumed run needs no record of them).
+    through the image's row, so a resumed run needs no record of them); ``given``: the values
+    come from the intrinsics file.
     """
 
     key: str
@@ -138,14 +145,16 @@ class CameraSpec:
     params: tuple[float, ...]
     prior_focal_length: bool
     shared: bool = True
+    given: bool = False
 
 
-def default_camera_params(info: ImageInfo) -> tuple[tuple[float, ...], bool]:
-    """SIMPLE_RADIAL params ``(f, cx, cy, 0)`` and ``prior_focal_length`` of an image."""
+def default_camera_params(info: ImageInfo, camera_model: str = DEFAULT_CAMERA_MODEL) -> tuple[tuple[float, ...], bool]:
+    """Params of ``camera_model`` for an image (focal lengths the EXIF prior or 1.2 x the
+    longer side, principal point at the centre, no distortion) and ``prior_focal_length``."""
     w, h = info.width, info.height
     prior = info.focal_px is not None
     f = float(info.focal_px) if prior else DEFAULT_FOCAL_FACTOR * max(w, h)
-    return (f, (w - 1) / 2.0, (h - 1) / 2.0, 0.0), prior
+    return tuple(float(v) for v in default_params(camera_model, w, h, f)), prior
 
 
 def _scope(camera_mode: str, name: str) -> list[str]:
@@ -169,13 +178,18 @@ def _check_same_size(camera_mode: str, names: list[str], infos: dict[str, ImageI
 
 
 def assign_cameras(
-    infos: dict[str, ImageInfo], camera_mode: str, table: IntrinsicsTable | None
+    infos: dict[str, ImageInfo], camera_mode: str, table: IntrinsicsTable | None,
+    camera_model: str = DEFAULT_CAMERA_MODEL,
 ) -> dict[str, CameraSpec]:
     """The camera of every image (module docstring for the rules); :class:`InputError` when an
     intrinsics line's size differs from its image or a shared camera would span two sizes."""
     if camera_mode not in CAMERA_MODES:
         raise InputError(
             f"camera_mode must be one of {'|'.join(CAMERA_MODES)}, got {camera_mode!r}"
+        )
+    if camera_model not in CAMERA_MODEL_NAMES:
+        raise InputError(
+            f"camera_model must be one of {'|'.join(CAMERA_MODEL_NAMES)}, got {camera_model!r}"
         )
     groups: dict[str, list[str]] = {}
     known: dict[str, KnownIntrinsics] = {}
@@ -202,21 +216,21 @@ def assign_cameras(
         groups.setdefault(key, []).append(name)
     if table is not None and uncovered:
         logger.warning(
-            "%d image(s) not in intrinsics file %s (e.g. %s): they keep SIMPLE_RADIAL cameras "
-            "with EXIF or default focal priors", len(uncovered), table.path, ", ".join(uncovered[:3]),
+            "%d image(s) not in intrinsics file %s (e.g. %s): they get %s cameras with EXIF or "
+            "default focal priors", len(uncovered), table.path, ", ".join(uncovered[:3]), camera_model,
         )  # fmt: skip
     specs: dict[str, CameraSpec] = {}
     for key, names in groups.items():
         shared = camera_mode != "per-image"
         if key in known:
             k = known[key]
-            spec = CameraSpec(key, "PINHOLE", k.width, k.height, k.values[2:], True, shared)
+            spec = CameraSpec(key, "PINHOLE", k.width, k.height, k.values[2:], True, shared, given=True)
         else:
             _check_same_size(camera_mode, names, infos)
             with_prior = [n for n in names if infos[n].focal_px is not None]
             info = infos[(with_prior or names)[0]]
-            params, prior = default_camera_params(info)
-            spec = CameraSpec(key, "SIMPLE_RADIAL", info.width, info.height, params, prior, shared)
+            params, prior = default_camera_params(info, camera_model)
+            spec = CameraSpec(key, camera_model, info.width, info.height, params, prior, shared)
         for name in names:
             specs[name] = spec
     return specs

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sfm.core.options import Options, option
-from sfm.features.cameras import CAMERA_MODES
+from sfm.features.cameras import CAMERA_MODEL_NAMES, CAMERA_MODES, DEFAULT_CAMERA_MODEL
 
 
 @dataclass(frozen=True)
@@ -24,9 +24,16 @@ class ExtractOptions(Options):
     camera_mode: str = option(
         "auto", "Which images share a camera: auto (same size, EXIF make, model and focal), one for all "
         "images, one per sub-folder, or one per image.", choices=CAMERA_MODES)
+    camera_model: str = option(
+        DEFAULT_CAMERA_MODEL, "COLMAP camera model of cameras whose intrinsics are not given, refined by bundle "
+        "adjustment: OPENCV (fx, fy, cx, cy, k1, k2, p1, p2) holds wide-angle and phone lenses.",
+        choices=CAMERA_MODEL_NAMES)
     intrinsics: Path | None = option(
         None, "File of 'NAME WIDTH HEIGHT FX FY CX CY' lines ('*' for every image, OpenCV pixel centres): "
         "those images get PINHOLE cameras with these values, held fixed unless refine_given_intrinsics.")
+    masks: Path | None = option(
+        None, "Folder of masks in COLMAP's convention, MASKS/<image name>.png: no keypoint is kept where a mask is "
+        "zero; an image without a mask is used whole.")
     root_sift: bool = option(
         True, "RootSIFT descriptors (L1-normalised, square-rooted, as COLMAP); off: L2-normalised SIFT.")
     contrast_threshold: float = option(

@@ -82,16 +82,16 @@ def localization_sigma(scales: np.ndarray) -> np.ndarray:
 
 # Up to this many pixels SIFT describes every detection and the selection takes its rows;
 # above, it detects, selects, then describes the kept keypoints (a second Gaussian pyramid).
-# Same output either way, only the cost differs: a 640 x 480 image holds fewer locations than
-# max_num_features and a second pyramid would add a third (0.128 -> 0.171 s per image), where
-# a 2.5-megapixel photo (lund_door) detects ~4x the locations kept: describing them all adds
-# 40% (1.57 -> 2.21 s), the second pyramid 7%.
+# Same output either way, only the cost differs: a small image holds fewer locations than
+# max_num_features, so describing them all is cheaper than building a second pyramid, while a
+# photo of several megapixels detects many times the locations kept, and describing only the
+# kept ones saves more than the second pyramid costs.
 DESCRIBE_ALL_PIXELS = 1_000_000
 
 
 def detect_and_select(gray: np.ndarray, contrast_threshold: float, edge_threshold: float,
                       max_num_features: int, keep_features: str = "largest_scale",
-                      root_sift: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                      root_sift: bool = True, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV SIFT on an 8-bit grey image: ``(keypoints (N, 4) float32 x, y, scale (sigma),
     orientation (radians); descriptors (N, 128) uint8)`` of at most ``max_num_features``
     locations with up to ``MAX_ORIENTATIONS`` orientations each, the largest-scale ones
@@ -103,7 +103,7 @@ def detect_and_select(gray: np.ndarray, contrast_threshold: float, edge_threshol
         enable_precise_upscale=True,
     )  # fmt: skip
     small = gray.shape[0] * gray.shape[1] <= DESCRIBE_ALL_PIXELS
-    kps, desc = sift.detectAndCompute(gray, None) if small else (sift.detect(gray, None), None)
+    kps, desc = sift.detectAndCompute(gray, mask) if small else (sift.detect(gray, mask), None)
     if not kps:
         return empty
     found = np.array([(k.pt[0], k.pt[1], k.size, k.response) for k in kps], np.float64)

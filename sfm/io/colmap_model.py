@@ -4,8 +4,8 @@ Conventions at this boundary, and nowhere else:
 
 * Pixels: graphsfm keypoints and principal points use OpenCV's convention (pixel centres at
   integers); COLMAP files put the image corner at (0, 0).  Writing adds 0.5 to keypoint x, y and
-  to cx, cy (:func:`backend.camera_models.params_to_colmap`); reading subtracts 0.5
-  (:func:`~backend.camera_models.params_from_colmap`).
+  to cx, cy (:func:`sfm.io.pixel_convention.params_to_colmap`); reading subtracts 0.5
+  (:func:`~sfm.io.pixel_convention.params_from_colmap`).
 * Poses: an image's qvec (w, x, y, z) + tvec is ``cam_from_world`` (``x_cam = R X + t``), i.e.
   ``Image.cam_from_world_rotation`` / ``cam_from_world_translation``.
 * Only registered images are written; observations in other images are left out of the tracks
@@ -22,8 +22,11 @@ Conventions at this boundary, and nowhere else:
 * Each file goes to a temporary file in the target directory; all are moved into place with
   ``os.replace`` once every one is complete, so an interrupted write leaves no partial file.
 
-PLY (:func:`write_ply`): binary little-endian, one ``vertex`` element with ``double x, y, z`` and
-``uchar red, green, blue``, points in ascending id order.
+PLY (:func:`write_ply`): binary little-endian, one ``vertex`` element with ``double x, y, z``,
+``float nx, ny, nz`` and ``uchar red, green, blue``, points in ascending id order.  A sparse
+point has no surface normal; its normal is the side it was seen from, the mean of the unit
+directions from the point to the cameras that observe it (zero for a point no registered image
+sees), which is what the Gaussian-splatting reference code and OpenMVS read as ``nx, ny, nz``.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ from typing import IO
 
 import numpy as np
 
+from sfm.errors import DamagedFileError
 from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 from sfm.io.colmap_files import WRITERS, ModelTables, corrupt_file, read_bin, read_txt
 from backend.geometry import quaternion_to_rotation, rotation_to_quaternion
@@ -63,7 +67,7 @@ def write_model(recon: Reconstruction, path: str | os.PathLike, fmt: str = "bin"
         for name, writer in WRITERS[fmt].items():  # cameras, images, points3D, rigs, frames
             with open_(f"{name}.{fmt}") as f:
                 writer(f, t)
-    logger.info("wrote %s model %s: %d cameras, %d images, %d points, %d observations", fmt,
+    logger.debug("wrote %s model %s: %d cameras, %d images, %d points, %d observations", fmt,
                 path, len(t.cameras), len(t.image_ids), len(t.point_ids), len(t.track))
 
 
@@ -89,30 +93,62 @@ def read_model(path: str | os.PathLike, fmt: str | None = None) -> Reconstructio
     for name in FILES:
         if not (path / f"{name}.{fmt}").is_file():
             raise FileNotFoundError(f"COLMAP model file {path / f'{name}.{fmt}'} is missing")
-    with _no_gc():
-        recon = _from_tables(read_bin(path) if fmt == "bin" else read_txt(path), path)
-    logger.info("read %s model %s: %d cameras, %d images, %d points", fmt, path,
+    try:
+        with _no_gc():
+            recon = _from_tables(read_bin(path) if fmt == "bin" else read_txt(path), path)
+    except ValueError as exc:  # colmap_files.corrupt_file: any parse failure, naming the file
+        raise DamagedFileError(path, str(exc),
+                               "give a complete model, or delete it and rerun the stage that wrote it") from exc
+    logger.debug("read %s model %s: %d cameras, %d images, %d points", fmt, path,
                 len(recon.cameras), len(recon.images), len(recon.points3D))
     return recon
 
 
-def write_ply(recon: Reconstruction, path: str | os.PathLike) -> None:
-    """Write the points (ascending id) as binary little-endian PLY: double x,y,z, uchar rgb."""
-    path = Path(path)
+def ply_arrays(recon: Reconstruction) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(xyz (N, 3), rgb (N, 3) uint8, normals (N, 3))`` of the points in ascending id order
+    (normals: the module docstring's viewing side)."""
     ids = sorted(recon.points3D)
-    data = np.empty(len(ids), np.dtype([("xyz", "<f8", (3,)), ("rgb", "u1", (3,))]))
-    data["xyz"] = np.array([recon.points3D[i].xyz for i in ids]).reshape(-1, 3)
-    data["rgb"] = np.array([recon.points3D[i].color for i in ids]).reshape(-1, 3)
-    props = "".join(f"property {t} {n}\n" for t, n in [("double", "x"), ("double", "y"), (
-        "double", "z"), ("uchar", "red"), ("uchar", "green"), ("uchar", "blue")])
-    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(ids)}\n{props}end_header\n"
+    xyz = np.array([recon.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
+    rgb = np.array([recon.points3D[i].color for i in ids], np.uint8).reshape(-1, 3)
+    centers = {i: im.center for i, im in recon.images.items() if im.registered}
+    normals = np.zeros_like(xyz)
+    for row, i in enumerate(ids):
+        rays = np.array([centers[img] for img, _ in recon.points3D[i].track if img in centers]).reshape(-1, 3) - xyz[row]
+        if len(rays):
+            mean = (rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)).mean(axis=0)
+            normals[row] = mean / max(float(np.linalg.norm(mean)), 1e-300)
+    return xyz, rgb, normals
+
+
+def write_ply(recon: Reconstruction, path: str | os.PathLike) -> None:
+    """Write the points (ascending id) as binary little-endian PLY: double x,y,z, float
+    nx,ny,nz, uchar rgb (module docstring)."""
+    write_ply_arrays(path, *ply_arrays(recon))
+
+
+def write_ply_arrays(path: str | os.PathLike, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY of points ``xyz`` (N, 3) with colours ``rgb`` and, if given,
+    ``normals`` (N, 3)."""
+    path = Path(path)
+    fields = [("xyz", "<f8", (3,))] + ([("n", "<f4", (3,))] if normals is not None else []) + [("rgb", "u1", (3,))]
+    data = np.empty(len(xyz), np.dtype(fields))
+    data["xyz"] = np.asarray(xyz).reshape(-1, 3)
+    if normals is not None:
+        data["n"] = np.asarray(normals).reshape(-1, 3)
+    data["rgb"] = np.asarray(rgb).reshape(-1, 3)
+    names = [("double", "x"), ("double", "y"), ("double", "z")]
+    names += [("float", "nx"), ("float", "ny"), ("float", "nz")] if normals is not None else []
+    names += [("uchar", "red"), ("uchar", "green"), ("uchar", "blue")]
+    props = "".join(f"property {t} {n}\n" for t, n in names)
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(data)}\n{props}end_header\n"
     with _atomic_dir(path.parent) as open_, open_(path.name) as f:
         f.write(header.encode("ascii"))
         f.write(data.tobytes())
 
 
-def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """``(xyz (N, 3) float64, rgb (N, 3) uint8)`` of a binary little-endian PLY's vertices."""
+def read_ply(path: str | os.PathLike, normals: bool = False) -> tuple[np.ndarray, ...]:
+    """``(xyz (N, 3) float64, rgb (N, 3) uint8)`` of a binary little-endian PLY's vertices,
+    and with ``normals`` their ``nx, ny, nz`` (N, 3) float64 (NaN when the file has none)."""
     path = Path(path)
     buf = path.read_bytes()
     with corrupt_file(path):
@@ -134,7 +170,12 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         has_rgb = all(c in data.dtype.names for c in ("red", "green", "blue"))
         rgb = (np.stack([data[c] for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
                if has_rgb else np.full((len(data), 3), 128, np.uint8))
-    return xyz, rgb
+        if not normals:
+            return xyz, rgb
+        has_normals = all(c in data.dtype.names for c in ("nx", "ny", "nz"))
+        nxyz = (np.stack([data[c].astype(np.float64) for c in ("nx", "ny", "nz")], axis=1)
+                if has_normals else np.full((len(data), 3), np.nan))
+    return xyz, rgb, nxyz
 
 
 # ---------------------------------------------------------------------------------- conversion

@@ -17,7 +17,10 @@ Conventions (COLMAP's, so files are interchangeable):
 - PIXELS: graphsfm keypoints use OpenCV's convention (pixel centres at integers); the database
   holds COLMAP's (image corner at (0, 0)). :meth:`Database.write_keypoints` adds 0.5 to x and y,
   :meth:`Database.read_keypoints` subtracts it; camera principal points likewise
-  (``backend.camera_models.params_to_colmap``): no other code needs to know.
+  (``sfm.io.pixel_convention.params_to_colmap``): no other code needs to know.
+- One table of graphsfm's own, ``graphsfm_keypoint_colors`` (image id, rows, uint8 RGB rows x 3:
+  the colour of each keypoint, written with the keypoints by the extract stage), made only when
+  colours are written; COLMAP and pycolmap open the file and ignore it.
 - ``two_view_geometries.config`` holds :class:`~sfm.io.database_schema.TwoViewConfig` codes; a verified pair has
   config >= 2 (CALIBRATED) and enough inliers.
 
@@ -38,17 +41,22 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from backend.camera_models import CAMERA_MODELS
+from sfm.errors import DamagedFileError
 from sfm.io.pixel_convention import params_from_colmap, params_to_colmap
 from sfm.io.database_schema import (
     CAMERA_MODEL_IDS,
     CAMERA_MODEL_NAMES,
+    COORDINATES_WGS84,
     DESCRIPTOR_TYPE_SIFT,
     GEOMETRY_COLUMNS,
+    KEYPOINT_COLORS,
+    KEYPOINT_COLORS_SCHEMA,
     MAX_IMAGE_ID,
     SCHEMA,
     SENSOR_TYPE_CAMERA,
     CameraRecord,
     ImageRecord,
+    PosePrior,
     TwoViewGeometry,
     image_ids_from_pair_id,
     pair_id,
@@ -124,6 +132,13 @@ def _geometry_row(image_id1: int, image_id2: int, geometry: TwoViewGeometry) -> 
     )  # fmt: skip
 
 
+def damaged_database(path: Path, exc: Exception) -> DamagedFileError:
+    """The one-line error of a database file SQLite cannot read (``database disk image is
+    malformed``, ``file is not a database``)."""
+    return DamagedFileError(path, str(exc), f"delete it (and {Path(path).name}-wal, -shm if there) and rerun "
+                            "with --images: the features are extracted and matched again")
+
+
 class Database:
     """A COLMAP-4-compatible database file; a context manager (``close`` on exit)."""
 
@@ -131,15 +146,23 @@ class Database:
         self.path = Path(path)
         self.readonly = readonly
         self._depth = 0
-        if readonly:
-            uri = f"{self.path.resolve().as_uri()}?mode=ro"
-            self._conn = sqlite3.connect(uri, uri=True, isolation_level=None, timeout=60.0)
-        else:
-            self._conn = sqlite3.connect(self.path, isolation_level=None, timeout=60.0)
-            self._conn.execute("PRAGMA journal_mode=WAL")
-            self._conn.execute("PRAGMA synchronous=NORMAL")
-            self._conn.executescript(SCHEMA)
-        columns = {r[1] for r in self._conn.execute("PRAGMA table_info(descriptors)")}
+        self._conn = None  # type: ignore[assignment]
+        try:
+            if readonly:
+                uri = f"{self.path.resolve().as_uri()}?mode=ro"
+                self._conn = sqlite3.connect(uri, uri=True, isolation_level=None, timeout=60.0)
+            else:
+                self._conn = sqlite3.connect(self.path, isolation_level=None, timeout=60.0)
+                self._conn.execute("PRAGMA journal_mode=WAL")
+                self._conn.execute("PRAGMA synchronous=NORMAL")
+                self._conn.executescript(SCHEMA)
+            columns = {r[1] for r in self._conn.execute("PRAGMA table_info(descriptors)")}
+        except sqlite3.DatabaseError as exc:
+            if self._conn is not None:
+                self._conn.close()
+            if type(exc) is sqlite3.DatabaseError:  # not locked, not a constraint: the file is damaged
+                raise damaged_database(self.path, exc) from exc
+            raise
         self._descriptors_have_type = "type" in columns  # False in COLMAP 3.x databases
 
     def close(self) -> None:
@@ -237,6 +260,32 @@ class Database:
             self._conn.execute("INSERT INTO frame_data VALUES (?, ?, ?, ?)", frame)
         return new_id
 
+    def write_pose_prior(self, image_id: int, camera_id: int, position: Any, covariance: Any = None,
+                         coordinate_system: int = COORDINATES_WGS84) -> None:
+        """The position prior of an image (COLMAP 4's ``pose_priors`` row, as pycolmap writes
+        it: the image's data id, its camera as the sensor, gravity unknown); replaces one there
+        was.  ``covariance`` (3, 3) or None (unknown: NaN)."""
+        cov = np.full(9, np.nan) if covariance is None else np.asarray(covariance, np.float64).reshape(9)
+        row = (int(image_id), int(camera_id), SENSOR_TYPE_CAMERA, _blob(np.asarray(position, np.float64).reshape(3), np.float64),
+               _blob(cov, np.float64), _blob(np.full(3, np.nan), np.float64), int(coordinate_system))
+        with self.transaction():
+            old = self._one("SELECT pose_prior_id FROM pose_priors WHERE corr_data_id=? AND corr_sensor_type=?",
+                            (int(image_id), SENSOR_TYPE_CAMERA))
+            self._conn.execute("INSERT OR REPLACE INTO pose_priors VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                               (None if old is None else old[0], *row))
+
+    def read_pose_priors(self) -> dict[int, PosePrior]:
+        """Image id -> its position prior (camera sensors only)."""
+        out = {}
+        sql = ("SELECT corr_data_id, corr_sensor_id, position, position_covariance, coordinate_system "
+               "FROM pose_priors WHERE corr_sensor_type = ?")
+        for image_id, camera_id, position, cov, system in self._conn.execute(sql, (SENSOR_TYPE_CAMERA,)):
+            pos = _array(position, np.float64, (3,))
+            cov = _array(cov, np.float64, (3, 3))
+            out[int(image_id)] = PosePrior(int(image_id), int(camera_id), np.full(3, np.nan) if pos is None else pos,
+                                           np.full((3, 3), np.nan) if cov is None else cov, int(system))
+        return out
+
     def write_keypoints(self, image_id: int, keypoints: Any) -> None:
         """Store (N, 2|4|6) keypoints given in OpenCV's pixel convention (adds 0.5 to x, y)."""
         kp = np.array(keypoints, dtype=np.float32, ndmin=2)
@@ -257,6 +306,16 @@ class Database:
         with self.transaction():
             sql = f"INSERT OR REPLACE INTO descriptors VALUES ({', '.join('?' * len(row))})"
             self._conn.execute(sql, row)
+
+    def write_keypoint_colors(self, image_id: int, colors: Any) -> None:
+        """Store the (N, 3) uint8 RGB colour of each keypoint of an image, row k for keypoint k,
+        in graphsfm's own table (:data:`~sfm.io.database_schema.KEYPOINT_COLORS_SCHEMA`, made
+        by the first write): COLMAP and pycolmap ignore it."""
+        rgb = np.ascontiguousarray(colors, dtype=np.uint8).reshape(-1, 3)
+        with self.transaction():
+            self._conn.execute(KEYPOINT_COLORS_SCHEMA)
+            sql = f"INSERT OR REPLACE INTO {KEYPOINT_COLORS} VALUES (?, ?, ?)"
+            self._conn.execute(sql, (int(image_id), len(rgb), rgb.tobytes()))
 
     def write_matches(self, image_id1: int, image_id2: int, matches: Any) -> None:
         """Store raw matches: (N, 2) feature indices into image 1 and image 2."""
@@ -317,6 +376,21 @@ class Database:
             params = (json.dumps([int(i) for i in image_ids]),)  # type: ignore[assignment]
         rows = self._conn.execute(sql, params)
         return {int(i): _decode_keypoints(r, c, d) for i, r, c, d in rows}
+
+    def read_keypoint_colors(self, image_ids: Iterable[int] | None = None) -> dict[int, np.ndarray]:
+        """The (N, 3) uint8 keypoint colours of the given images (default: all) that have them
+        and as many as keypoints; a database graphsfm did not extract has none."""
+        exists = "SELECT 1 FROM sqlite_master WHERE type='table' AND name=?"
+        if self._one(exists, (KEYPOINT_COLORS,)) is None:
+            return {}
+        sql = (f"SELECT c.image_id, c.rows, c.data FROM {KEYPOINT_COLORS} c "
+               "JOIN keypoints k ON k.image_id = c.image_id AND k.rows = c.rows")
+        params: tuple = ()
+        if image_ids is not None:
+            sql += " WHERE c.image_id IN (SELECT value FROM json_each(?))"
+            params = (json.dumps([int(i) for i in image_ids]),)
+        rows = self._conn.execute(sql, params)
+        return {int(i): np.frombuffer(d or b"", np.uint8).reshape(int(r), 3) for i, r, d in rows}
 
     def read_descriptors(self, image_id: int) -> np.ndarray:
         """Descriptors (N, D) uint8; (0, 128) when absent."""
@@ -391,9 +465,21 @@ class Database:
     def num_images(self) -> int:
         return self._scalar("SELECT COUNT(*) FROM images")
 
+    def keypoint_counts(self) -> dict[int, int]:
+        """The number of keypoints of each image that has keypoints."""
+        return {int(i): int(n) for i, n in self._conn.execute("SELECT image_id, rows FROM keypoints")}
+
     def num_keypoints(self) -> int:
         """Total number of keypoints over all images."""
         return self._scalar("SELECT SUM(rows) FROM keypoints")
+
+    def keypoint_counts(self) -> dict[int, int]:
+        """Keypoints per image id (images without a keypoints row are absent)."""
+        return {int(i): int(n) for i, n in self._conn.execute("SELECT image_id, rows FROM keypoints")}
+
+    def num_two_view_geometries(self) -> int:
+        """Pairs that went through verification (a row each, verified or not)."""
+        return self._scalar("SELECT COUNT(*) FROM two_view_geometries")
 
     def num_verified_pairs(self, min_inliers: int = 15) -> int:
         sql = "SELECT COUNT(*) FROM two_view_geometries WHERE config>=2 AND rows>=?"

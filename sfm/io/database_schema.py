@@ -9,7 +9,7 @@ What ``sfm.io.database.Database`` reads and writes, independent of any connectio
   (:data:`CAMERA_MODEL_IDS`, :data:`CAMERA_MODEL_NAMES`); the sensor and descriptor type codes;
   and :class:`TwoViewConfig`, the codes of ``two_view_geometries.config`` (a verified pair has
   config >= 2, CALIBRATED).
-- Records rows decode into: :class:`CameraRecord`, :class:`ImageRecord` and
+- Records rows decode into: :class:`CameraRecord`, :class:`ImageRecord`, :class:`PosePrior` and
   :class:`TwoViewGeometry` (with :meth:`TwoViewGeometry.inverted`, the same geometry seen from
   image 2, as COLMAP inverts it when a pair is stored in the other order).
 """
@@ -32,6 +32,8 @@ CAMERA_MODEL_IDS: dict[str, int] = {
     "EQUIRECTANGULAR": 17,
 }  # fmt: skip
 CAMERA_MODEL_NAMES: dict[int, str] = {v: k for k, v in CAMERA_MODEL_IDS.items()}
+# ``pose_priors.coordinate_system`` (pycolmap's PosePriorCoordinateSystem)
+COORDINATES_UNDEFINED, COORDINATES_WGS84, COORDINATES_CARTESIAN = -1, 0, 1
 
 
 class TwoViewConfig(IntEnum):
@@ -127,6 +129,19 @@ class ImageRecord:
 
 
 @dataclass(frozen=True, eq=False)
+class PosePrior:
+    """A ``pose_priors`` row of an image: ``position`` (3,) in ``coordinate_system``
+    (:data:`COORDINATES_WGS84`: latitude deg, longitude deg, altitude m, as COLMAP stores GPS),
+    ``position_covariance`` (3, 3), NaN where unknown."""
+
+    image_id: int
+    camera_id: int
+    position: np.ndarray
+    position_covariance: np.ndarray
+    coordinate_system: int = COORDINATES_WGS84
+
+
+@dataclass(frozen=True, eq=False)
 class TwoViewGeometry:
     """COLMAP config code, inlier matches (N, 2) uint32 and the optional models, image 1 -> 2.
 
@@ -160,3 +175,12 @@ class TwoViewGeometry:
             E=None if self.E is None else np.ascontiguousarray(np.transpose(self.E)),
             H=None if self.H is None else np.linalg.inv(self.H), qvec=qvec, tvec=tvec,
         )  # fmt: skip
+
+
+# graphsfm's own table, beside COLMAP's: the RGB colour of every keypoint (row k of ``data`` is
+# keypoint k's), written in the same transaction as the keypoints.  Made by the first write, so
+# a database without colours has exactly COLMAP's tables.
+KEYPOINT_COLORS = "graphsfm_keypoint_colors"
+KEYPOINT_COLORS_SCHEMA = (f"CREATE TABLE IF NOT EXISTS {KEYPOINT_COLORS} (image_id INTEGER PRIMARY KEY NOT NULL, "
+                          "rows INTEGER NOT NULL, data BLOB, "
+                          "FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE)")

@@ -1,4 +1,4 @@
-"""Image files: finding them, reading their EXIF, decoding them to an upright 8-bit grey image.
+"""Image files: finding them, decoding them to upright 8-bit grey or RGB.
 
 Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
 
@@ -14,13 +14,12 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
   formula); alpha is dropped; palette images are expanded; 16-bit images are divided by 257
   (65535 -> 255, the same as keeping the high byte, like COLMAP's FreeImage conversion); float
   and 32-bit integer images are stretched from their min to their max.
-- Focal prior from EXIF (:func:`focal_prior_from_exif`), in pixels of the upright image:
-  ``FocalLengthIn35mmFilm / 36 * max(W, H)`` (36 mm is the long side of a 35 mm frame; COLMAP
-  divides by 35), else ``FocalLength`` (mm) times the sensor's pixels per mm from
-  ``FocalPlaneXResolution`` / ``FocalPlaneResolutionUnit``, rescaled by
-  ``max(W, H) / max(PixelXDimension, PixelYDimension)`` when the file was resized after the
-  camera wrote those tags; else no prior. Priors outside ``[0.1, 50] * max(W, H)`` are treated
-  as bogus EXIF and ignored.
+- Colour (:func:`read_rgb`, for the colours of the 3D points and the recording's thumbnails): the
+  same decoding and orientation, to 8-bit RGB; grey images give three equal channels.
+- EXIF (``sfm.io.exif``): the focal prior, GPS, orientation, make and model.
+- Masks (:func:`read_mask`, COLMAP's convention): ``MASKS/<image name>.png``, a grey or colour
+  image of the upright image's size whose zero pixels are to be ignored (a mask of the stored,
+  unrotated size is turned upright with its image's EXIF orientation).
 - A file that cannot be used raises :class:`BadImageError` whose message is the reason (empty
   file, not an image, truncated, ...). Pillow's decompression-bomb limit is lifted while we read:
   a 100-megapixel photo is a normal input here.
@@ -29,7 +28,6 @@ Conventions (the ``extract`` stage relies on them; see ``sfm.stages.extract``):
 from __future__ import annotations
 
 import logging
-import math
 import os
 import warnings
 from collections.abc import Iterator
@@ -42,20 +40,12 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from sfm.io.exif import (MAKE, MODEL, ORIENTATION, exif_number, exif_tags, exif_text, focal_prior_from_exif,
+                         gps_from_exif, gps_tags)
+
 logger = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"})
-
-# EXIF tags (IFD0 and the Exif sub-IFD)
-_EXIF_IFD = 0x8769
-_ORIENTATION = 0x0112
-_MAKE, _MODEL = 0x010F, 0x0110
-_FOCAL_LENGTH = 0x920A
-_FOCAL_35MM = 0xA405
-_FOCAL_PLANE_X_RES, _FOCAL_PLANE_UNIT = 0xA20E, 0xA210
-_PIXEL_X_DIM, _PIXEL_Y_DIM = 0xA002, 0xA003
-_MM_PER_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # inch, cm, mm, micrometre
-_PLAUSIBLE_FOCAL = (0.1, 50.0)  # times max(W, H)
 
 # EXIF orientation -> the Pillow transpose that makes the image upright (as ImageOps.exif_transpose)
 _UPRIGHT = {
@@ -75,7 +65,8 @@ class ImageInfo:
     """What the camera of an image needs: upright size and EXIF facts.
 
     ``focal_px`` is the EXIF focal prior in pixels of the upright image (None: EXIF gives none);
-    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``.
+    ``focal_source`` is ``"exif-35mm"``, ``"exif-focal-plane"`` or ``"none"``; ``gps`` is
+    ``(latitude deg, longitude deg, altitude m)`` on WGS84 from EXIF, or None.
     """
 
     width: int
@@ -85,17 +76,48 @@ class ImageInfo:
     model: str = ""
     focal_px: float | None = None
     focal_source: str = "none"
+    gps: tuple[float, float, float] | None = None
 
 
 def find_images(image_dir: Path) -> list[str]:
-    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted."""
+    """Names (relative paths, ``/`` separators) of the image files under ``image_dir``, sorted.
+
+    Symbolic links are followed, but each real folder and file is visited once: a link back to
+    a folder already visited (a loop) or to a file already found is skipped, with one warning
+    line for all of them (the first name in walking order, folders and files sorted, wins)."""
     image_dir = Path(image_dir)
-    names = []
+    names, seen_dirs, seen_files, skipped = [], set(), set(), []
+
+    def key(path: str) -> tuple[int, int] | None:
+        try:
+            st = os.stat(path)
+        except OSError:  # a dangling link
+            return None
+        return st.st_dev, st.st_ino
+
     for root, dirs, files in os.walk(image_dir, followlinks=True):
+        here = key(root)
+        if here in seen_dirs:
+            skipped.append(Path(root).relative_to(image_dir).as_posix() + "/")
+            dirs[:] = []
+            continue
+        seen_dirs.add(here)
         dirs.sort()
-        for f in files:
-            if os.path.splitext(f)[1].lower() in IMAGE_EXTENSIONS:
-                names.append((Path(root) / f).relative_to(image_dir).as_posix())
+        for f in sorted(files):
+            if os.path.splitext(f)[1].lower() not in IMAGE_EXTENSIONS:
+                continue
+            path = os.path.join(root, f)
+            k = key(path)
+            name = Path(path).relative_to(image_dir).as_posix()
+            if k is not None and k in seen_files:
+                skipped.append(name)
+                continue
+            if k is not None:
+                seen_files.add(k)
+            names.append(name)
+    if skipped:
+        logger.warning("%d link(s) in %s lead to a folder or file already found and are skipped: %s", len(skipped),
+                       image_dir, ", ".join(skipped[:3]) + (" ..." if len(skipped) > 3 else ""))
     return sorted(names)
 
 
@@ -112,64 +134,9 @@ def _no_pixel_limit() -> Iterator[None]:
         Image.MAX_IMAGE_PIXELS = saved
 
 
-def _number(value: object) -> float | None:
-    """A finite float from an EXIF value (rational, int, tuple of one), or None."""
-    if isinstance(value, (tuple, list)):
-        value = value[0] if len(value) == 1 else None
-    try:
-        x = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError, ZeroDivisionError):
-        return None
-    return x if math.isfinite(x) else None
-
-
-def _text(value: object) -> str:
-    if isinstance(value, bytes):
-        value = value.decode("latin-1", errors="replace")
-    return str(value).strip().strip("\x00").strip() if value is not None else ""
-
-
-def focal_prior_from_exif(tags: dict, width: int, height: int) -> tuple[float | None, str]:
-    """EXIF focal prior in pixels and its source (see the module docstring for the rules).
-
-    ``tags`` maps EXIF tag ids to values (IFD0 and the Exif sub-IFD merged); ``width`` and
-    ``height`` are the image's (either orientation: only ``max(W, H)`` matters).
-    """
-    max_size = max(width, height)
-    lo, hi = _PLAUSIBLE_FOCAL[0] * max_size, _PLAUSIBLE_FOCAL[1] * max_size
-    f35 = _number(tags.get(_FOCAL_35MM))
-    if f35 is not None and f35 > 0 and lo <= f35 / 36.0 * max_size <= hi:
-        return f35 / 36.0 * max_size, "exif-35mm"
-    f_mm = _number(tags.get(_FOCAL_LENGTH))
-    x_res = _number(tags.get(_FOCAL_PLANE_X_RES))
-    unit = _number(tags.get(_FOCAL_PLANE_UNIT))
-    unit_mm = _MM_PER_UNIT.get(int(unit) if unit is not None else 2)  # EXIF default: inches
-    if f_mm and f_mm > 0 and x_res and x_res > 0 and unit_mm is not None:
-        f_px = f_mm * x_res / unit_mm
-        exif_w, exif_h = _number(tags.get(_PIXEL_X_DIM)), _number(tags.get(_PIXEL_Y_DIM))
-        if exif_w and exif_h and exif_w > 0 and exif_h > 0:
-            f_px *= max_size / max(exif_w, exif_h)  # the file was resized after capture
-        if lo <= f_px <= hi:
-            return f_px, "exif-focal-plane"
-    return None, "none"
-
-
-def _exif_tags(im: Image.Image) -> dict:
-    """IFD0 and Exif sub-IFD tags merged (sub-IFD wins), read without decoding pixels."""
-    if im.format == "PNG" and "exif" not in im.info:
-        return {}  # PngImageFile.getexif() would decode the whole image to look after IDAT
-    try:
-        exif = im.getexif()
-        tags = dict(exif)
-        tags.update(exif.get_ifd(_EXIF_IFD))
-    except Exception:  # noqa: BLE001 - malformed EXIF is common and never fatal
-        return {}
-    return tags
-
-
 def _info_from_pil(im: Image.Image) -> ImageInfo:
-    tags = _exif_tags(im)
-    orientation = int(_number(tags.get(_ORIENTATION)) or 1)
+    tags = exif_tags(im)
+    orientation = int(exif_number(tags.get(ORIENTATION)) or 1)
     orientation = orientation if orientation in _UPRIGHT else 1
     width, height = im.size
     # Pillow's TIFF reader already reports the upright size (and rotates the pixels on load)
@@ -178,7 +145,8 @@ def _info_from_pil(im: Image.Image) -> ImageInfo:
         width, height = height, width
     focal, source = focal_prior_from_exif(tags, width, height)
     return ImageInfo(
-        width, height, orientation, _text(tags.get(_MAKE)), _text(tags.get(_MODEL)), focal, source
+        width, height, orientation, exif_text(tags.get(MAKE)), exif_text(tags.get(MODEL)), focal, source,
+        gps_from_exif(gps_tags(im)) if tags else None,
     )
 
 
@@ -239,33 +207,93 @@ def probe_image(path: Path) -> ImageInfo:
 
 def read_gray(data: bytes) -> tuple[np.ndarray, ImageInfo]:
     """Decode an image file's bytes to an upright (EXIF orientation applied) uint8 grey image."""
+    gray, info = _decode(data, _pil_gray, _cv2_gray)
+    if gray.ndim != 2 or gray.shape != (info.height, info.width):
+        raise BadImageError(f"unexpected decoded shape {gray.shape}")
+    return gray, info
+
+
+def read_rgb(data: bytes) -> np.ndarray:
+    """Decode an image file's bytes to an upright uint8 RGB image (H, W, 3), the same pixels
+    :func:`read_gray` gives in grey: alpha dropped, palettes expanded, grey images repeated in
+    the three channels, 16-bit and float images scaled as :func:`read_gray` scales them."""
+    rgb, info = _decode(data, _pil_rgb, _cv2_rgb)
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[:, :, None], 3, axis=2)
+    if rgb.shape != (info.height, info.width, 3):
+        raise BadImageError(f"unexpected decoded shape {rgb.shape}")
+    return rgb
+
+
+def _decode(data: bytes, from_pil, from_cv2) -> tuple[np.ndarray, ImageInfo]:
+    """``from_pil(image)`` upright as uint8, or ``from_cv2(data)`` for files Pillow cannot identify."""
     if not data:
         raise BadImageError("empty file")
     with _no_pixel_limit():
         try:
             im = Image.open(BytesIO(data))
         except UnidentifiedImageError:
-            gray = _cv2_gray(data)
-            if gray is None:
+            arr = from_cv2(data)
+            if arr is None:
                 raise BadImageError("not an image Pillow or OpenCV can read") from None
-            return gray, ImageInfo(int(gray.shape[1]), int(gray.shape[0]))
+            return arr, ImageInfo(int(arr.shape[1]), int(arr.shape[0]))
         except (OSError, ValueError, SyntaxError, EOFError) as exc:
             raise BadImageError(f"cannot read: {exc}") from None
         try:
             info = _info_from_pil(im)
-            decoded = _pil_gray(im)
+            decoded = from_pil(im)
             # some Pillow readers (TIFF) rotate on load and then drop the tag: rotate only once
-            still_tagged = _number(_exif_tags(im).get(_ORIENTATION)) == info.orientation
+            still_tagged = exif_number(exif_tags(im).get(ORIENTATION)) == info.orientation
             if info.orientation in _UPRIGHT and still_tagged:
                 decoded = decoded.transpose(_UPRIGHT[info.orientation])
-            gray = _to_uint8(np.asarray(decoded))
+            arr = _to_uint8(np.asarray(decoded))
         except (OSError, ValueError, SyntaxError, EOFError) as exc:  # truncated, corrupt
             raise BadImageError(f"cannot decode: {exc}") from None
         finally:
             im.close()
-    if gray.ndim != 2 or gray.shape != (info.height, info.width):
-        raise BadImageError(f"unexpected decoded shape {gray.shape} for mode {im.mode}")
-    return gray, info
+    return arr, info
+
+
+def _pil_rgb(im: Image.Image) -> Image.Image:
+    """Decode to 'RGB', or to what :func:`_pil_gray` gives for single-channel 16/32-bit and
+    float images (their grey levels are scaled to 8 bits first, then repeated)."""
+    if im.mode in _SIXTEEN_BIT_MODES or im.mode in ("I", "F"):
+        return _pil_gray(im)
+    return im.convert("RGB")
+
+
+def _cv2_rgb(data: bytes) -> np.ndarray | None:
+    """Decode with OpenCV (files Pillow cannot identify) to 8-bit RGB, or None."""
+    try:
+        arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
+    except cv2.error:
+        return None
+    if arr is None or arr.size == 0:
+        return None
+    return _to_uint8(cv2.cvtColor(arr, cv2.COLOR_BGR2RGB))
+
+
+def mask_path(masks: Path, name: str) -> Path:
+    """Where COLMAP looks for the mask of image ``name``: ``masks/<name>.png``."""
+    return Path(masks) / f"{name}.png"
+
+
+def read_mask(data: bytes, info: ImageInfo) -> np.ndarray:
+    """The mask file's bytes as a boolean array of the upright image's shape (H, W): True
+    where features may be, False where the mask is zero (every channel, alpha ignored)."""
+    with _no_pixel_limit():
+        try:
+            with Image.open(BytesIO(data)) as im:
+                arr = np.asarray(im.convert("RGB") if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr") else im)
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError) as exc:
+            raise BadImageError(f"cannot read its mask: {exc}") from None
+    keep = arr.reshape(arr.shape[0], arr.shape[1], -1).any(axis=2)
+    if keep.shape == (info.width, info.height) and info.orientation in (5, 6, 7, 8) and info.width != info.height:
+        keep = np.asarray(Image.fromarray(keep).transpose(_UPRIGHT[info.orientation]))
+    if keep.shape != (info.height, info.width):
+        raise BadImageError(
+            f"its mask is {keep.shape[1]}x{keep.shape[0]} but the image is {info.width}x{info.height} (upright)")
+    return keep
 
 
 def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float, float]:
@@ -280,33 +308,3 @@ def downscale(gray: np.ndarray, max_image_size: int) -> tuple[np.ndarray, float,
     new_w, new_h = max(1, round(width / scale)), max(1, round(height / scale))
     small = cv2.resize(gray, (new_w, new_h), interpolation=cv2.INTER_AREA)
     return small, width / new_w, height / new_h
-
-
-def available_memory() -> int | None:
-    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def workers_for_memory(max_image_size: int) -> int:
-    """One worker per core, but no more than memory allows: OpenCV's SIFT holds its whole
-    Gaussian and DoG pyramids of the 2x-upsampled image, about 230 bytes per input pixel
-    (1.7 GB for a 3200 x 2400 image), plus the decoded full-size image."""
-    cores = (
-        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    )
-    available = available_memory()
-    if available is None:
-        return cores
-    per_worker = 230 * 0.75 * max_image_size**2 + 300e6
-    fits = max(1, int(0.8 * available // per_worker))
-    if fits < cores:
-        logger.info("extract: %d workers instead of %d, to fit in %.1f GB of memory", fits, cores,
-                    available / 1e9)  # fmt: skip
-    return min(cores, fits)

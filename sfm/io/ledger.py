@@ -9,7 +9,8 @@ database, the clusters, the local models), not by time stamps, so a stage that r
 same result does not force the later ones to run again.
 
 ``map`` also records each cluster as it finishes, so a run killed during ``map`` keeps the
-clusters that were done.  ``extract`` and ``match`` resume per image and per pair on their own
+clusters that were done; ``extend`` (new images added to the finished model) records its
+sub-steps and its clusters the same way, so a killed extension resumes where it stopped.  ``extract`` and ``match`` resume per image and per pair on their own
 (the database is written one transaction per image or batch); the ledger only tells them when
 their options changed, which makes their earlier rows stale.
 
@@ -30,12 +31,13 @@ from typing import Any
 
 import numpy as np
 
+from sfm.errors import DamagedFileError
 from sfm.io.workspace import read_json, write_json_atomic
 
 log = logging.getLogger(__name__)
 
 LEDGER = "stages.json"
-STAGES = ("extract", "match", "cluster", "map", "merge")
+STAGES = ("extract", "match", "cluster", "map", "merge", "extend")
 # How a stage runs, never what it computes.
 EXECUTION_ONLY = frozenset({"num_workers", "workers"})
 
@@ -76,6 +78,14 @@ def fingerprint(*parts: Any) -> str:
             h.update(json.dumps(_plain(p), sort_keys=True, default=str).encode())
         h.update(b"\x00")
     return h.hexdigest()[:20]
+
+
+def files_fingerprint(root: Path, pattern: str = "**/*") -> str:
+    """:func:`fingerprint` of the files under ``root`` matching ``pattern``: each one's path
+    relative to ``root`` and its bytes, in path order."""
+    root = Path(root)
+    files = sorted(p for p in root.glob(pattern) if p.is_file()) if root.is_dir() else []
+    return fingerprint(*[x for p in files for x in (p.relative_to(root).as_posix(), p.read_bytes())])
 
 
 def changes(old: dict | None, new: dict) -> list[str]:
@@ -146,7 +156,7 @@ class Ledger:
             try:
                 data = read_json(self.path)
                 self.data = data if isinstance(data, dict) else {}
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, DamagedFileError) as exc:
                 log.warning("ignoring unreadable %s (every stage runs again): %s", self.path, exc)
 
     def record(self, stage: str) -> dict | None:

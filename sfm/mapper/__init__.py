@@ -1,1 +1,59 @@
-"""sfm.mapper."""
+"""Incremental SfM of one cluster: its images' matches in, one or more local models out.
+
+The local reconstruction of paper section 3.2 ("due to the robustness to outliers, we choose
+incremental SfM"; a cluster's bounded size keeps its drift small), following COLMAP's
+incremental mapper, as the paper's own implementation does (section 4.1).  The ``map`` stage
+(``sfm.stages.map``) builds one self-contained payload per cluster and runs
+``reconstruct_incremental`` on it in a worker; ``sfm.merge`` reuses the same state and bundle
+adjuster to refine the merged model.
+
+Design, the loop (``sfm.mapper.incremental``):
+
+1. Tracks: the verified inlier matches are joined into tracks over (image, keypoint) nodes; a
+   component that would hold two keypoints of one image is rebuilt so that the wrong match
+   loses against the many right ones it contradicts.
+2. Initial pair: among the pairs with most inliers (``init_min_num_inliers``, 100), one that is
+   not homography-dominated and whose median triangulation angle reaches
+   ``init_min_tri_angle`` (16 degrees, halved up to three times when none does), reconstructed
+   from its essential matrix.
+3. Next image: the unregistered image that sees most triangulated points, well spread, is
+   registered by PnP RANSAC (``abs_pose_min_num_inliers`` 30, ``abs_pose_min_inlier_ratio``
+   0.25, ``abs_pose_max_error`` 12 px) and refined on its inliers; when PnP registers nothing,
+   the structure-less fallback registers from 2D-2D matches (COLMAP 4's default behaviour).
+4. Triangulation of the tracks it newly sees: batched multi-view DLT with angle
+   (``min_tri_angle`` 1.5 degrees), depth and reprojection (``max_reproj_error`` 4 px) checks.
+5. Local BA around the new image (``local_ba_num_images`` 6); a global BA, re-triangulation
+   and filtering whenever the model has grown by ``global_ba_ratio`` (1.2), and after every
+   image while the model is young.  A camera whose refined intrinsics leave the range a lens can
+   have takes its images out of the model (COLMAP's filter).
+6. When no image registers any more: final BAs to a tighter tolerance, and a new model from the
+   remaining images; several models are a result, not an error.
+
+Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
+image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised
+operation, not a loop over points.  Every BA is a GTSAM factor graph (``backend``) with a robust
+loss, each observation weighed by its keypoint's detection scale; a global BA while the model
+grows optimises a subset of the tracks, and a final BA too large for memory is the consensus of
+BAs over random track parts (``ba_max_observations``).  Defaults are COLMAP's documented ones
+(OpenSfM's for ``global_ba_ratio``).
+
+Modules, in reading order:
+
+- ``sfm.mapper.payload``: ``MapperInput``, one cluster's self-contained input, and its cameras.
+- ``sfm.mapper.options``: ``MapperOptions``, the ``map`` stage's options.
+- ``sfm.mapper.incremental``: ``reconstruct_incremental``, the loop above, and the final
+  refinement of each model.
+- ``sfm.mapper.tracks``: tracks from pairwise matches (conflict-aware union-find).
+- ``sfm.mapper.state``: ``MapperState``, the arrays and their geometry steps (triangulate,
+  filter, candidates for registration, apply a BA).
+- ``sfm.mapper.initialization``: choosing and reconstructing the initial pair.
+- ``sfm.mapper.registration``: registering the next image by PnP.
+- ``sfm.mapper.structureless``: registering an image that sees too few points for PnP.
+- ``sfm.mapper.triangulation``: batched DLT, triangulation angles, point refinement.
+- ``sfm.mapper.bundle_adjuster``: ``BundleAdjuster``, which local, global and final BAs move
+  what, and when they stop.
+- ``sfm.mapper.output``: the model as a ``Reconstruction``, and the growing model for Rerun.
+
+Paper: section 3.2 (local incremental SfM of each cluster, in parallel) and section 4.1
+(COLMAP's incremental pipeline for the local clusters).
+"""

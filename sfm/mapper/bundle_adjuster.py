@@ -2,7 +2,7 @@
 moves, and when it stops.
 
 :class:`BundleAdjuster` belongs to one :class:`sfm.mapper.state.MapperState`.  It chooses what a
-BA optimises, builds the :class:`backend.bundle_adjustment.BAProblem` from the state's arrays,
+BA optimises, builds the :class:`backend.ba_problem.BAProblem` from the state's arrays,
 runs it (``backend``: a GTSAM factor graph) and hands the result back to the state
 (:meth:`MapperState.apply_adjustment`), which then filters its observations.
 
@@ -12,6 +12,9 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
 - Global BA when the model has grown by ``global_ba_ratio``: every registered image, on a subset
   of the tracks (TheiaSfM's selection: each image's best track per grid cell keeps the poses
   from drifting; the rest are re-estimated with the cameras held).
+- BA of a region (a model extended by new images, ``graphsfm extend``): the given images and
+  the registered images that share points with them free, every point those free images see,
+  the other images that see those points held; its cost grows with the region, not the model.
 - Final BAs of a model: every image and every track, to a tighter tolerance; with
   ``intrinsics_refinement="auto"`` the principal point too of each camera whose shift from its
   nominal value the model determines (``sfm.mapper.principal_point``, tested before the BA at
@@ -40,6 +43,7 @@ from backend.camera_models import ds2_from_params
 from backend.partitioned_ba import bundle_adjust_partitioned
 from backend.track_subset import select_tracks
 from sfm.mapper.principal_point import PrincipalPointTest, check_principal_point
+from sfm.core import progress
 from sfm.mapper.state import ROW_CHUNK, MapperState
 from sfm.mapper.tracks import work_cuts
 from sfm.mapper.triangulation import refine_points
@@ -100,7 +104,8 @@ class BundleAdjuster:
             refine = self.opts.intrinsics_refinement
             if refine == "auto":
                 refine = self._final_levels(free, tracks, loss_scale)
-            self._adjust(free, tracks, refine, 100, tolerance, parts=parts, loss_scale=loss_scale)
+            self._adjust(free, tracks, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
+                         on_iteration=_report_final_ba(len(free)))
             if parts > 1:
                 self.refine_points(tracks)
         else:
@@ -111,6 +116,41 @@ class BundleAdjuster:
                 self.refine_points(np.setdiff1d(tracks, subset))
         s.drop_degenerate_cameras()
         s.filter_observations(tracks)
+
+    def region(self, images: np.ndarray, loss_scale: float | None = None) -> np.ndarray:
+        """Final BA around ``images`` (the images added to a finished model): they and the
+        registered images that share an inlier point with them are free, every point a free
+        image sees is optimised, and the other images that see those points are held, so the
+        rest of the model anchors the region (the local BA of :meth:`local` grown to a set of
+        new images, with the neighbours' own points in it).  Intrinsics are refined only when
+        no image outside the free ones uses the camera.  Then COLMAP's filtering of those
+        points.  Returns the optimised tracks."""
+        s = self.state
+        images = np.asarray(images, dtype=np.int64)
+        images = images[s.registered[images]]
+        if len(images) == 0:
+            return np.zeros(0, np.int64)
+        seen = np.unique(s.obs_track[np.concatenate([s.image_rows[i] for i in images])])
+        rows, _ = s.inlier_rows(seen[s.track_valid[seen]])
+        free = np.union1d(images, np.unique(s.obs_image[rows]))
+        own = np.concatenate([s.image_rows[i] for i in free])
+        tracks = np.unique(s.obs_track[own[s.obs_inlier[own]]])
+        tracks = tracks[s.track_valid[tracks]]
+        outside = s.registered.copy()
+        outside[free] = False
+        refine = self._growing_level()
+        if np.intersect1d(np.unique(s.cam_index[free]), np.unique(s.cam_index[outside])).size:
+            refine = "none"
+        parts = self._num_parts(tracks)
+        log.info("%s: BA of the region around %d images: %d images free, %d points", s.payload.label,
+                 len(images), len(free), len(tracks))
+        self._adjust(free, tracks, refine, 100, FINAL_TOLERANCE, parts=parts,
+                     loss_scale=self._global_loss_scale() if loss_scale is None else loss_scale)
+        if parts > 1:
+            self.refine_points(tracks)
+        s.drop_degenerate_cameras()
+        s.filter_observations(tracks)
+        return tracks
 
     def refine_points(self, tracks: np.ndarray) -> None:
         """Re-estimate the given points from their inlier rows with the cameras held (in
@@ -238,7 +278,7 @@ class BundleAdjuster:
 
     def _adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str | list[str], max_iterations: int,
                 tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
-                predictive: bool = False, loss_scale: float | None = None) -> None:
+                predictive: bool = False, loss_scale: float | None = None, on_iteration=None) -> None:
         """BA of ``tracks`` with the images ``free`` free and the others that see them held;
         ``refine``: one level for every camera, or one per camera of the state;
         ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
@@ -253,9 +293,20 @@ class BundleAdjuster:
         refined = any(level != "none" for level in group_levels)
         options = BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale if loss_scale is None else loss_scale,
                             refine_intrinsics=group_levels, max_iterations=max_iterations,
-                            relative_tolerance=tolerance, optimizer=optimizer, predictive_stop=predictive)
+                            relative_tolerance=tolerance, optimizer=optimizer, predictive_stop=predictive,
+                            on_iteration=on_iteration)
         result = bundle_adjust_partitioned(problem, parts, options, seed=self.opts.seed)
         s.apply_adjustment(order[:n_free], result.rotations[:n_free], result.translations[:n_free], tracks,
                            result.points, cams if refined else None, result.camera_params)
         self.last_rms = float(result.final_rms)
         self.last_decrease = float(result.last_decrease)
+
+
+def _report_final_ba(num_images: int):
+    """A final BA's iterations as progress events (``sfm.core.progress``): the iteration and
+    its cost, so a display can show a long BA moving."""
+
+    def on_iteration(iteration: int, before: float, after: float) -> None:
+        progress.report("final_ba", iteration + 1, None, cost=after, images=num_images)
+
+    return on_iteration

@@ -22,16 +22,17 @@ import logging
 
 import numpy as np
 
+from sfm.core import progress
 from sfm.core.model import Reconstruction
 from sfm.mapper.bundle_adjuster import FINAL_TOLERANCE, GROWING_TOLERANCE, BundleAdjuster
 from sfm.mapper.initialization import try_initial_pair
 from sfm.mapper.options import MapperOptions
-from sfm.mapper.output import log_progress, to_reconstruction
+from sfm.mapper.growth import Growth
+from sfm.mapper.output import to_reconstruction
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.registration import register_next
 from sfm.mapper.state import MapperState
 from sfm.mapper.structureless import register_structureless
-from sfm.viz.recorder import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -44,20 +45,24 @@ MAX_REFINEMENT_CHANGE = 0.0005
 EARLY_GLOBAL_BA_IMAGES = 10
 
 
-def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder: Recorder | None = None) -> list[Reconstruction]:
-    """All models incremental SfM makes of ``payload``'s images, largest first."""
-    recorder = recorder or Recorder.disabled()
+def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: Growth | None = None) -> list[Reconstruction]:
+    """All models incremental SfM makes of ``payload``'s images, largest first (paper section
+    3.2: the local SfM of one cluster).  ``growth``: filled with each registration step and why
+    images were left out (``sfm.mapper.growth``), for the recording."""
     state = MapperState(payload, opts)
     adjuster = BundleAdjuster(state)
     models: list[Reconstruction] = []
     tried: set = set()
     min_size = opts.smallest_model(len(payload.names))
+    num_images, closed = len(payload.names), 0  # images in the models already closed
     while len(models) < opts.max_num_models:
         if not try_initial_pair(state, tried):
             break
         adjuster.global_()
         last_global = state.num_registered
-        log_progress(state, adjuster, recorder)
+        progress.report("registered", closed + state.num_registered, num_images)
+        if growth is not None:
+            growth.record(state, adjuster.last_rms, list(np.flatnonzero(state.registered)))
         # A failed image is retried once it sees 20% more points (cheap on large clusters);
         # when nothing else registers, with any growth (at most MAX_REG_TRIALS failures), then
         # without PnP.
@@ -69,10 +74,16 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
                 last_global = state.num_registered
             else:
                 adjuster.local(state.last_registered)
-            log_progress(state, adjuster, recorder)
+            progress.report("registered", closed + state.num_registered, num_images)
+            if growth is not None:
+                growth.record(state, adjuster.last_rms, [state.last_registered])
         final_refinement(state, adjuster)
         model = to_reconstruction(state)
         n = state.num_registered
+        closed += n
+        if growth is not None:
+            growth.record(state, adjuster.last_rms, [])  # the refined model
+            growth.close(state)
         state.close_model()
         if n >= min_size:
             models.append(model)
@@ -80,6 +91,8 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, recorder:
         if int(np.sum(~state.used)) < 2:
             break
     models.sort(key=lambda m: -len(m.images))
+    if growth is not None:
+        growth.finish(min_size)
     return models
 
 

@@ -99,11 +99,12 @@ def try_initial_pair(state: MapperState, tried: set) -> bool:
     has that many), up to ``init_max_pairs``; each gets its relative pose once (E).  The pair
     with the most well-triangulated points among those whose median triangulation angle
     reaches ``init_min_tri_angle`` wins; if none does, the angle is halved, up to three times
-    (COLMAP relaxes twice; a camera moving forward along a street sees median angles of 2-3
-    degrees even between frames a few steps apart, and BA widens the baseline as the model
-    grows).  Candidates come in order of inliers and a score never exceeds a pair's inliers, so
-    the search stops once a pair passing the first angle threshold scores more than the next
-    candidate has inliers: the same winner, fewer two-view reconstructions.  The two-view
+    (COLMAP relaxes twice; a camera moving forward along a street sees most points close to
+    its direction of motion, so median angles of only a few degrees even between frames a
+    few steps apart, and BA widens the baseline as the model grows).  Candidates come in order
+    of inliers and a score never exceeds a pair's inliers, so the search stops once a pair
+    passing the first angle threshold scores more than the next candidate has inliers: the
+    same winner, fewer two-view reconstructions.  The two-view
     triangulation that scores a pair (:func:`two_view_score`) waits until a threshold needs it
     for pairs whose rays are clearly too parallel for the first one (:func:`ray_angles`): on
     a ring of views, most pairs with many matches are neighbours a few degrees apart."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from sfm.core.options import Options, option
+from sfm.evaluation.georegistration import DEFAULT_GPS_MAX_ERROR
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,12 @@ class MapperOptions(Options):
         "consensus of BAs over random track parts. 0: no limit.", min=0)
     min_model_size: int = option(3, "Smallest number of registered images kept as a model.", min=2)
     max_num_models: int = option(50, "The most models made from one input.", min=1)
+    georegister: bool = option(
+        True, "Move each final model into a local east-north-up frame in metres when three or more of its "
+        "images carry EXIF GPS (origin in report.json).")
+    gps_max_error: float = option(
+        DEFAULT_GPS_MAX_ERROR, "Georegistration's inlier distance in metres between a camera and its GPS position (twice the "
+        "4.9 m (95%) accuracy of civil GPS).", above=0)
     seed: int = option(0, "Seed of every random choice (RANSAC sampling).", min=0)
 
     def for_model(self, final: bool) -> MapperOptions:

@@ -1,5 +1,6 @@
 """What :class:`sfm.mapper.state.MapperState` gives out: the model as a
-:class:`sfm.core.model.Reconstruction`, and the growing model for the Rerun viewer."""
+:class:`sfm.core.model.Reconstruction`, each point coloured by the mean colour of the keypoints
+that observe it (COLMAP colours its points so)."""
 
 from __future__ import annotations
 
@@ -7,11 +8,8 @@ import itertools
 
 import numpy as np
 
-from backend.camera_models import calibration_matrix
-from sfm.mapper.bundle_adjuster import BundleAdjuster
 from sfm.mapper.state import MapperState
 from sfm.core.model import Camera, Image, Point3D, Reconstruction
-from sfm.viz.recorder import Recorder, log_camera
 
 
 def to_reconstruction(state: MapperState) -> Reconstruction:
@@ -40,31 +38,43 @@ def to_reconstruction(state: MapperState) -> Reconstruction:
     for iid, sel in zip(image_ids.tolist(), np.split(by_image, first[1:])):
         recon.images[iid].point3D_ids[kp_of_row[sel]] = point_of_row[sel]
     xyz = state.track_xyz[tr[starts[:-1]]]
-    grey = np.full(3, 128, np.uint8)
+    colors = mean_colors(state, rows, starts)
     images, kps = image_of_row.tolist(), kp_of_row.tolist()
     for k, (s, e) in enumerate(itertools.pairwise(starts.tolist())):
-        color = grey
-        if state.payload.colors is not None:
-            color = np.asarray(state.payload.colors[state.obs_image[rows[s]]][kps[s]], dtype=np.uint8)
-        recon.points3D[k + 1] = Point3D(xyz[k], list(zip(images[s:e], kps[s:e])), color)
+        recon.points3D[k + 1] = Point3D(xyz[k], list(zip(images[s:e], kps[s:e])), colors[k])
     recon._next_point_id = len(lengths) + 1
     recon.update_point_errors()
     return recon
 
 
-def log_progress(state: MapperState, adjuster: BundleAdjuster, recorder: Recorder) -> None:
-    """``clusters/<label>/points``, the new camera and the last BA's RMS on the
-    ``registration`` timeline: the model growing image by image."""
-    if not recorder.enabled:
-        return
-    import rerun as rr
+def row_colors(state: MapperState, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The keypoint colour of each observation row ``(R, 3)`` uint8, and whether it is known
+    (the payload has colours for the row's image)."""
+    colors = state.payload.colors
+    rgb = np.zeros((len(rows), 3), np.uint8)
+    if colors is None:
+        return rgb, np.zeros(len(rows), bool)
+    sizes = np.array([len(c) for c in colors], dtype=np.int64)
+    flat = np.concatenate([np.asarray(c, np.uint8).reshape(-1, 3) for c in colors] + [np.zeros((0, 3), np.uint8)])
+    image, kp = state.obs_image[rows], state.obs_kp[rows]
+    known = kp < sizes[image]
+    rgb[known] = flat[(np.cumsum(sizes) - sizes)[image[known]] + kp[known]]
+    return rgb, known
 
-    label = state.payload.label
-    recorder.set_time("registration", state.num_registered)
-    recorder.log(f"clusters/{label}/points", rr.Points3D(state.track_xyz[state.track_valid]))
-    recorder.log(f"clusters/{label}/ba_rms_px", rr.Scalars(adjuster.last_rms))
-    i = state.last_registered
-    if i >= 0:
-        c = state.cam_index[i]
-        log_camera(recorder, f"clusters/{label}/cams/{state.names[i]}", state.R[i], state.t[i],
-                   calibration_matrix(state.priors[c].model, state.params[c]), state.priors[c].width, state.priors[c].height)
+
+def mean_colors(state: MapperState, rows: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """``(P, 3)`` uint8: the mean keypoint colour of each group ``rows[starts[k]:starts[k+1]]``
+    (a point's track), rounded half up in integers so that it is exact and the same on every
+    machine; grey (128) for a point none of whose images has colours."""
+    num = len(starts) - 1
+    out = np.full((num, 3), 128, np.uint8)
+    if num <= 0 or state.payload.colors is None:
+        return out
+    rgb, known = row_colors(state, rows)
+    owner = np.repeat(np.arange(num), np.diff(starts))
+    sums = np.stack([np.bincount(owner[known], weights=rgb[known, c], minlength=num) for c in range(3)],
+                    axis=1).astype(np.int64)  # float64 sums of bytes: exact
+    counts = np.bincount(owner[known], minlength=num).astype(np.int64)
+    has = counts > 0
+    out[has] = ((2 * sums[has] + counts[has, None]) // (2 * counts[has, None])).astype(np.uint8)
+    return out

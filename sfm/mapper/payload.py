@@ -1,8 +1,9 @@
-"""The self-contained input of one local SfM run (a cluster), and its options.
+"""The self-contained input of one local SfM run (a cluster) and its camera priors.
 
 A :class:`MapperInput` holds everything incremental SfM needs (image names and ids, camera
 priors, keypoints, the verified matches of its pairs) and no paths into the caller's disk, so
-it can be pickled to a worker process or another machine (DESIGN.md, "Execution").
+it can be pickled to a worker process or another machine (``sfm.execution``).  Its options are
+:class:`sfm.mapper.options.MapperOptions`.
 """
 
 from __future__ import annotations
@@ -38,5 +39,5 @@ class MapperInput:
     cameras: dict[int, CameraPrior]
     keypoints: list[np.ndarray]
     pairs: list[tuple[int, int, np.ndarray, int]]
-    colors: list[np.ndarray] | None = None  # per image (K_k, 3) uint8 RGB at each keypoint
+    colors: list[np.ndarray] | None = None  # per image (K_k, 3) uint8 RGB at each keypoint, or (0, 3): unknown
     label: str = "C0"

@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from backend.camera_models import has_bogus_params, reprojection_errors, unproject
+from backend.camera_models import focal_lengths, has_bogus_params, reprojection_errors, unproject
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.options import MapperOptions
 from sfm.features.sift import localization_sigma
@@ -23,7 +23,8 @@ from sfm.mapper.triangulation import depths, max_triangulation_angles, triangula
 
 log = logging.getLogger(__name__)
 
-# Track rows triangulated or refined at once: the per-row temporaries stay around 100 MB.
+# Track rows triangulated or refined at once: the per-row temporaries stay bounded whatever
+# the model's size.
 ROW_CHUNK = 250_000
 MAX_REG_TRIALS = 3  # failures after which a stalled model stops retrying an image (COLMAP's max_reg_trials)
 # Registered images from which a camera with degenerate intrinsics takes its images out of the
@@ -87,7 +88,8 @@ class MapperState:
 
     def release_pairs(self) -> None:
         """Drop the verified matches once the tracks are built, for a caller that never picks
-        pairs again (the refinement of merged poses): at 4,000 images they are 0.3 GB."""
+        pairs again (the refinement of merged poses): on a large merged model they are a large
+        share of its memory."""
         self.pair_matches = {}
         self.payload = dataclasses.replace(self.payload, pairs=[])
 
@@ -160,8 +162,7 @@ class MapperState:
         return self.camera_focal(self.cam_index[i])
 
     def camera_focal(self, c: int) -> float:
-        spec_focal = self.params[c][[0, 1]] if self.priors[c].model in ("PINHOLE", "OPENCV") else self.params[c][[0]]
-        return float(np.mean(spec_focal))
+        return float(np.mean(focal_lengths(self.priors[c].model, self.params[c])))
 
     def norm_of(self, i: int, keypoints: np.ndarray) -> np.ndarray:
         prior = self.camera_of(i)

@@ -65,7 +65,8 @@ def build_tracks(num_keypoints: np.ndarray, matches: Iterable[tuple[int, int, np
         empty = np.zeros(0, dtype=np.int64)
         return Tracks(empty, empty, np.zeros(1, dtype=np.int64))
     # Node indices of the match ends, written in place: int32 while they fit (a list of
-    # per-pair arrays concatenated would hold them twice, 36 M matches at 4,000 images).
+    # per-pair arrays concatenated would hold them twice, and a large scene has tens of
+    # millions of matches).
     index_type = np.int32 if n < np.iinfo(np.int32).max else np.int64
     r, c = np.empty(total, dtype=index_type), np.empty(total, dtype=index_type)
     at = 0

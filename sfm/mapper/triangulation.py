@@ -111,7 +111,7 @@ def refine_points(rotations: np.ndarray, translations: np.ndarray, xy_norm: np.n
         # d(uv)/dX = (1/z) [[1, 0, -u], [0, 1, -v]] R: rows (R[0] - u R[2]) / z, (R[1] - v R[2]) / z
         j0 = rotations[:, 0, :] - uv[:, :1] * rotations[:, 2, :]
         j1 = rotations[:, 1, :] - uv[:, 1:] * rotations[:, 2, :]
-        s = (w / z**2)[:, None]  # explicit products: the einsum of small blocks took a third more
+        s = (w / z**2)[:, None]  # explicit products: cheaper than an einsum over 3 x 3 blocks
         H = per_point((s * j0)[:, :, None] * j0[:, None, :] + (s * j1)[:, :, None] * j1[:, None, :])
         g = per_point((w / z)[:, None] * (j0 * r[:, :1] + j1 * r[:, 1:]))
         scale = np.maximum(H[:, 0, 0] + H[:, 1, 1] + H[:, 2, 2], 1e-300)

@@ -1,12 +1,13 @@
-"""Nearest-neighbour matching of two images' SIFT descriptors (DESIGN.md, algorithm step 3).
+"""Nearest-neighbour matching of two images' SIFT descriptors (the ratio test and mutual check).
 
 Descriptor matching: nearest neighbour on unit-normalised float32 descriptors, Lowe's ratio test
 on Euclidean distances (``d1 < max_ratio * d2``) and a mutual check (the match must also be the
 nearest neighbour of its partner). ``brute`` is exact: blocked BLAS products (2 - 2 x.y is the
-squared distance of unit vectors), about 0.3 s for 8192 x 8192 on one core. ``flann`` is a
-KD-tree (4 trees, 64 checks), approximate (about 97 % of the exact matches), seeded through
-``cv2.setRNGSeed`` so it is deterministic. ``auto`` takes brute up to 2^27 descriptor pairs
-(about 11.6k x 11.6k features) and flann above, where its n log n wins.
+squared distance of unit vectors), so its cost grows with the product of the two images'
+feature counts. ``flann`` is a KD-tree (4 trees, 64 checks), approximate (it misses some of the
+exact nearest neighbours), seeded through ``cv2.setRNGSeed`` so it is deterministic. ``auto``
+takes brute up to 2^27 descriptor pairs (about 11.6k x 11.6k features) and flann above, where
+its n log n wins.
 """
 
 from __future__ import annotations
@@ -38,8 +39,7 @@ def _nearest_brute(d1: np.ndarray, d2: np.ndarray, block: int | None = None, d2t
     Rows go in blocks of ``block`` (default: ``BLOCK_SIMILARITIES`` products, at least 128
     rows) computed into a reused buffer.  The column maxima come from ``max(axis=0)``, a
     contiguous running reduction; an ``argmax(axis=0)`` per block (the nearest row's index)
-    transposes the block into a copy and took half the time (0.57 -> 0.30 s for 8192 x 8192 on
-    one idle core)."""
+    would transpose the block into a copy, a second pass over memory for every block."""
     d1, d2 = np.asarray(d1, np.float32), np.asarray(d2, np.float32)  # the buffer's type: BLAS's sgemm
     n1, n2 = len(d1), len(d2)
     block = block or max(128, BLOCK_SIMILARITIES // max(n2, 1))
@@ -89,8 +89,8 @@ def match_descriptors(
     test on Euclidean distances of unit-normalised descriptors, the mutual check when
     ``cross_check``, and ``distance <= max_distance`` when given. Sorted by index in 1.
     ``normalized``: both are :func:`normalize_descriptors` output already, and ``transposed2``
-    (optional) is ``descriptors2.T`` C-contiguous: the match stage caches both per image
-    (normalising and transposing per pair took a third of a 1,343 x 1,343 match)."""
+    (optional) is ``descriptors2.T`` C-contiguous: the match stage caches both per image, so
+    an image is normalised and transposed once, not once per pair it is in."""
     unit = (lambda d: d) if normalized else normalize_descriptors
     d1, d2 = unit(descriptors1), unit(descriptors2)
     if len(d1) == 0 or len(d2) == 0:

@@ -13,12 +13,17 @@ class MatchOptions(Options):
     """Options of the ``match`` stage (``graphsfm match``)."""
 
     pairs: str = option(
-        "auto", "Which pairs to match: every pair (exhaustive), each image's top_k most similar ones by "
-        "VLAD (retrieval), or exhaustive below exhaustive_threshold images and retrieval above (auto).",
-        choices=("auto", "exhaustive", "retrieval"))
+        "auto", "Which pairs to match: every pair (exhaustive), each image's top_k most similar by VLAD "
+        "(retrieval), retrieval plus GPS neighbours (spatial), or exhaustive below exhaustive_threshold (auto).",
+        choices=("auto", "exhaustive", "retrieval", "spatial"))
     top_k: int = option(30, "Retrieval matches each image with its top_k most similar images.", min=1)
     sequential: int = option(
         0, "Also match each image with the next N images in name order (video, drone strips); 0: off.", min=0)
+    spatial_neighbors: int = option(
+        50, "With pairs spatial: each image is also matched with this many nearest images by EXIF GPS "
+        "(COLMAP's spatial matcher: 50).", min=1)
+    spatial_max_distance: float = option(
+        100.0, "With pairs spatial: GPS neighbours at most this many metres away (COLMAP: 100); 0: any.", min=0)
     exhaustive_threshold: int = option(
         200, "With pairs auto: the number of images from which retrieval replaces exhaustive matching.", min=2)
     matcher: str = option(

@@ -1,4 +1,4 @@
-"""Which image pairs to match (DESIGN.md, algorithm step 2): exhaustive, retrieval, sequential.
+"""Which image pairs to match: exhaustive, retrieval, sequential.
 
 - ``exhaustive``: every pair, n (n - 1) / 2 of them.
 - ``retrieval``: one global descriptor per image, VLAD (Jegou et al. 2010; intra-normalised as in
@@ -6,8 +6,16 @@
   descriptors with a seeded ``MiniBatchKMeans``; similarity is the dot product of the VLAD
   vectors and every image keeps its ``top_k`` most similar images (symmetric union).
 - ``auto``: exhaustive below ``exhaustive_threshold`` images, retrieval at or above it.
+- ``spatial``: retrieval, plus each image's ``spatial_neighbors`` nearest images by position
+  (GPS in a local metric frame) no further than ``spatial_max_distance`` (COLMAP's spatial
+  matcher, OpenSfM's GPS neighbours: drone and street sets); images without a position get
+  their retrieval pairs only.
 - ``sequential`` window N > 0 adds (i, i+1 .. i+N) in the order the ids are given (callers pass
   name order), on top of the pairs above.
+- ``extension_pairs``: the pairs of images added to a finished model, each with at least one
+  new image: new x new by the rule above, and each new image with its ``top_k`` most similar
+  old images (VLAD over a vocabulary learned from the new images), so the matching grows with
+  the new images, not with the whole set.
 
 A pair is ``(id1, id2)`` with ``id1 < id2``; results are sorted unique ``(P, 2)`` int64 arrays.
 No I/O here: retrieval reads descriptors through a callable the caller provides, twice per image
@@ -21,7 +29,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-PAIR_METHODS = ("auto", "exhaustive", "retrieval")
+PAIR_METHODS = ("auto", "exhaustive", "retrieval", "spatial")
 VOCABULARY_WORDS = 64
 SAMPLES_PER_IMAGE = 200
 MAX_VOCABULARY_SAMPLES = 100_000
@@ -67,8 +75,9 @@ def learn_vocabulary(
 ) -> np.ndarray:
     """(K, D) float32 visual words: seeded MiniBatchKMeans of unit-normalised descriptors.
 
-    Runs on one thread: OpenMP's busy waiting made it 20x slower on a loaded 2-core machine,
-    and the result does not depend on the machine."""
+    Runs on one thread: OpenMP's busy-waiting threads stall on a machine whose cores are
+    taken by other work (the other workers of a run), and the result does not depend on the
+    machine."""
     from sklearn.cluster import MiniBatchKMeans
     from threadpoolctl import threadpool_limits
 
@@ -118,6 +127,25 @@ def retrieval_pairs(
     return _unique_pairs(np.concatenate(parts))
 
 
+def spatial_pairs(image_ids: Sequence[int], positions: np.ndarray, neighbors: int, max_distance: float) -> np.ndarray:
+    """Each image with its ``neighbors`` nearest images by ``positions`` (N, 3) in metres, up to
+    ``max_distance`` away (0: any distance); rows with a non-finite position take no part."""
+    from scipy.spatial import cKDTree
+
+    ids = np.asarray(image_ids, np.int64)
+    pos = np.asarray(positions, np.float64).reshape(-1, 3)
+    known = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
+    k = min(int(neighbors), len(known) - 1)
+    if k < 1:
+        return np.zeros((0, 2), np.int64)
+    tree = cKDTree(pos[known])
+    dist, idx = tree.query(pos[known], k=k + 1, distance_upper_bound=max_distance if max_distance > 0 else np.inf)
+    rows = np.repeat(np.arange(len(known)), k + 1)
+    ok = np.isfinite(dist.ravel())
+    pairs = np.stack([ids[known[rows[ok]]], ids[known[idx.ravel()[ok]]]], axis=1)
+    return _unique_pairs(pairs)
+
+
 def global_descriptors(
     image_ids: Sequence[int], load_descriptors: Callable[[int], np.ndarray], seed: int = 0,
     num_words: int = VOCABULARY_WORDS,
@@ -134,13 +162,21 @@ def select_pairs(
     image_ids: Sequence[int], method: str = "auto", *, top_k: int = 30, sequential: int = 0,
     exhaustive_threshold: int = 200, seed: int = 0,
     load_descriptors: Callable[[int], np.ndarray] | None = None,
+    positions: np.ndarray | None = None, spatial_neighbors: int = 50, spatial_max_distance: float = 100.0,
 ) -> np.ndarray:  # fmt: skip
     """The sorted unique (P, 2) pairs to match among ``image_ids`` (given in name order).
 
-    ``method`` one of auto|exhaustive|retrieval; retrieval needs ``load_descriptors``.
+    ``method`` one of auto|exhaustive|retrieval|spatial; retrieval needs ``load_descriptors``,
+    spatial also ``positions`` (N, 3) metres, NaN rows for images without one.
     """
     if method not in PAIR_METHODS:
         raise ValueError(f"pairs must be one of {'|'.join(PAIR_METHODS)}, got {method!r}")
+    spatial = np.zeros((0, 2), np.int64)
+    if method == "spatial":
+        if positions is None:
+            raise ValueError("spatial pairs need positions")
+        spatial = spatial_pairs(image_ids, positions, spatial_neighbors, spatial_max_distance)
+        method = "retrieval"
     if method == "auto":
         method = "exhaustive" if len(image_ids) < exhaustive_threshold else "retrieval"
     if method == "retrieval" and top_k >= len(image_ids) - 1:
@@ -152,4 +188,64 @@ def select_pairs(
             raise ValueError("retrieval pairs need descriptors (load_descriptors)")
         vectors = global_descriptors(image_ids, load_descriptors, seed)
         pairs = retrieval_pairs(image_ids, vectors, top_k)
-    return _unique_pairs(np.concatenate([pairs, sequential_pairs(image_ids, sequential)]))
+    return _unique_pairs(np.concatenate([pairs, spatial, sequential_pairs(image_ids, sequential)]))
+
+
+def extension_pairs(
+    new_ids: Sequence[int], old_ids: Sequence[int], method: str = "auto", *, top_k: int = 30, sequential: int = 0,
+    exhaustive_threshold: int = 200, seed: int = 0,
+    load_descriptors: Callable[[int], np.ndarray] | None = None,
+    positions: np.ndarray | None = None, spatial_neighbors: int = 50, spatial_max_distance: float = 100.0,
+) -> np.ndarray:  # fmt: skip
+    """The sorted unique (P, 2) pairs to match when ``new_ids`` are added to a model of
+    ``old_ids`` (both in name order): every pair has at least one new image.
+
+    - new x new: :func:`select_pairs` among the new images (the same ``method``).
+    - new x old: every such pair when the method resolves to exhaustive over all the images
+      (``auto`` below ``exhaustive_threshold`` images in all, or ``top_k`` reaching every old
+      image); otherwise each new image's ``top_k`` most similar old images by VLAD, with a
+      vocabulary learned from the new images' descriptors (the old images are only described,
+      one at a time, never matched among themselves).  ``spatial`` adds each new image's nearest
+      old images by ``positions`` (rows: new images, then old ones).
+    """
+    if method not in PAIR_METHODS:
+        raise ValueError(f"pairs must be one of {'|'.join(PAIR_METHODS)}, got {method!r}")
+    new = np.asarray(new_ids, np.int64)
+    old = np.asarray(old_ids, np.int64)
+    if len(new) == 0:
+        return np.zeros((0, 2), np.int64)
+    new_pos = None if positions is None else np.asarray(positions, np.float64)[: len(new)]
+    within = select_pairs(new, method, top_k=top_k, sequential=sequential, exhaustive_threshold=exhaustive_threshold,
+                          seed=seed, load_descriptors=load_descriptors, positions=new_pos,
+                          spatial_neighbors=spatial_neighbors, spatial_max_distance=spatial_max_distance)
+    if len(old) == 0:
+        return within
+    total = len(new) + len(old)
+    exhaustive = method == "exhaustive" or (method == "auto" and total < exhaustive_threshold) or top_k >= len(old)
+    if exhaustive:
+        across = np.stack([np.repeat(new, len(old)), np.tile(old, len(new))], axis=1)
+    else:
+        if load_descriptors is None:
+            raise ValueError("retrieval pairs need descriptors (load_descriptors)")
+        across = _retrieval_across(new, old, load_descriptors, top_k, seed)
+        if method == "spatial":
+            if positions is None:
+                raise ValueError("spatial pairs need positions")
+            near = spatial_pairs(np.concatenate([new, old]), positions, spatial_neighbors, spatial_max_distance)
+            is_new = np.isin(near, new)
+            across = np.concatenate([across, near[is_new[:, 0] ^ is_new[:, 1]]])
+    return _unique_pairs(np.concatenate([within, across]))
+
+
+def _retrieval_across(new: np.ndarray, old: np.ndarray, load_descriptors: Callable[[int], np.ndarray], top_k: int,
+                      seed: int) -> np.ndarray:
+    """Each new image with its ``top_k`` most similar old images (VLAD dot products, ties:
+    the earlier old image), the vocabulary learned from the new images' descriptors."""
+    per_image = max(1, min(SAMPLES_PER_IMAGE, MAX_VOCABULARY_SAMPLES // len(new)))
+    sample = [vocabulary_sample(load_descriptors(int(i)), per_image, seed, int(i)) for i in new]
+    vocabulary = learn_vocabulary(np.concatenate(sample), VOCABULARY_WORDS, seed)
+    g_new = np.stack([vlad(load_descriptors(int(i)), vocabulary) for i in new])
+    g_old = np.stack([vlad(load_descriptors(int(i)), vocabulary) for i in old])
+    k = min(int(top_k), len(old))
+    order = np.argsort(-(g_new @ g_old.T), axis=1, kind="stable")[:, :k]
+    return np.stack([np.repeat(new, k), old[order.ravel()]], axis=1)

@@ -1,4 +1,4 @@
-"""Two-view geometric verification (DESIGN.md, algorithm step 4), COLMAP's rules with OpenCV USAC.
+"""Two-view geometric verification (paper section 3.1.1: the image edges), COLMAP's rules with OpenCV USAC.
 
 For the raw matches of a pair:
 
@@ -6,8 +6,8 @@ For the raw matches of a pair:
    with MAGSAC (``cv2.findEssentialMat`` with :class:`cv2.UsacParams`) on undistorted normalised
    coordinates, threshold ``max_error_px / mean focal``; the relative pose ``cam2_from_cam1`` from
    ``cv2.recoverPose`` (cheirality), then refined by minimising the robust (Cauchy, 1 px) Sampson
-   error of the inliers, which removes most of USAC's pose error (2-4 degrees before, the noise
-   floor after, on synthetic pairs). Config CALIBRATED (2).
+   error of the inliers: USAC's pose is fitted to a minimal sample and only scored on the rest,
+   and the refinement fits it to every inlier, down to the keypoints' noise. Config CALIBRATED (2).
    Otherwise: fundamental matrix with MAGSAC in pixels; config UNCALIBRATED (3).
 2. The inliers are the matches whose Sampson distance to the final E (in pixels: normalised
    distance times the mean focal) or F is at most ``max_error_px``.
@@ -88,7 +88,7 @@ def ransac_trials(
     ``cap``.  A model with fewer inliers than that is rejected anyway, so iterating longer only
     looks for something the test discards (COLMAP bounds its trials the same way, through
     ``min_inlier_ratio``).  Most pairs of an exhaustive match have a few dozen chance matches and
-    no model: they used to run all ``cap`` iterations."""
+    no model: without this bound each of them would run all ``cap`` iterations."""
     if confidence >= 1.0:
         return int(cap)  # certainty needs every iteration
     ratio = min(float(needed_inliers) / max(int(num_matches), 1), 1.0)
@@ -234,7 +234,8 @@ def verify_pair(
     keypoints1: np.ndarray, keypoints2: np.ndarray, matches: np.ndarray, camera1: CameraLike,
     camera2: CameraLike, options: VerifyOptions = VerifyOptions(), seed: int = 0,
 ) -> TwoViewGeometry:  # fmt: skip
-    """The two-view geometry of one pair from its raw matches (see the module docstring).
+    """The two-view geometry of one pair from its raw matches (see the module docstring); its
+    inliers are the pair's image edge and their number its weight (paper section 3.1.1).
 
     Keypoints (N, >=2) in OpenCV's pixel convention; ``matches`` (M, 2) indices into them.
     F and H of the result are in OpenCV's pixel convention too, E on normalised coordinates,

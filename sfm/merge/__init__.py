@@ -1,1 +1,50 @@
-"""sfm.merge.cluster_graph."""
+"""Merging the local models into one frame, and the refinement of the merged model.
+
+The second half of paper section 3.2 and Algorithm 2, then the end of Figure 1: the local
+models of the clusters, each in its own frame and scale, are stitched along the most accurate
+similarity transformations into the frame of one anchor cluster, and the merged model is
+re-triangulated and bundle-adjusted once.  The ``merge`` stage (``sfm.stages.merge``) reads
+the local models from ``WORK/clusters`` and writes ``WORK/sparse/N`` and ``WORK/merge.json``.
+
+Design:
+
+- Cluster graph (Alg. 2, line 1; section 3.2.1): every pair of local models that share at
+  least ``min_common_cameras`` (2) registered images gets a similarity from those cameras
+  (``backend.similarity``): the relative scale as a median of camera-distance ratios (Eq. 1-2),
+  then rotation and translation by RANSAC with the scale known (Eq. 3-6).
+- Edge weights (section 3.2.2): the MSD of Eq. 11, the larger of the two directions' MSE of
+  Eq. 10, over the common 3D points (observed through the same keypoint of a common image) and
+  the inlier camera centres.  The MinST's weights should be ``-log p_ij`` (Eq. 7-9), but only
+  their order decides the tree, and the MSD orders the edges by how well the models agree.
+  Edges whose MSD is above ``max_msd`` are dropped (the paper's dotted edges, Figure 3).
+- Merge plan (section 3.2.3, Alg. 2, lines 2-12; ``graph.merge_plan``): the Kruskal MinST,
+  then the anchor as the root of a minimum height tree, found by peeling leaves layer by layer
+  (of two left, the larger cluster).  Every model is moved into the anchor's frame by the
+  similarities composed along its tree path; an image registered in several models keeps the
+  pose of the model nearest the anchor, a camera the parameters of the model that registered
+  most of its images.
+- Refinement (Figure 1 and the end of section 3's overview: re-triangulation and BA "can be
+  executed alternatively until convergence"): every track re-triangulated with the merged
+  poses, then global BA and filtering alternate with re-triangulation until it changes at most
+  COLMAP's 0.0005 of the observations (at most five BAs).  The paper finds one round enough;
+  clusters joined through thin overlaps need more, because similarity-moved poses make the
+  first triangulation reject observations that the first BA brings back.
+- Departures: the MSD is normalised by the common cameras' extent so weights compare across
+  pairs of models of different scales; the relative scale's median is anchored at each RANSAC
+  hypothesis (robust to up to half the common cameras being wrong) and the rotation comes from
+  the cameras' orientations; every connected part of the cluster graph becomes its own model
+  (``sparse/0``, ``sparse/1``, ..., largest first), where the authors' public code merges only
+  the largest.
+
+Modules, in reading order:
+
+- ``sfm.merge.options``: ``MergeOptions`` (``max_msd``, ``min_common_cameras``).
+- ``sfm.merge.cluster_graph``: the cluster graph's edges (similarity and MSD) and the merge plan.
+- ``sfm.merge.alignment``: every model in its anchor's frame, and the merged poses and cameras.
+- ``sfm.merge.refinement``: re-triangulation and global BA of the merged poses.
+- ``sfm.merge.extension``: new images' local models merged into a finished model held as the
+  anchor (Alg. 2 with the anchor given), and the BA of the new part (``graphsfm extend``).
+- ``sfm.merge.options`` also holds ``ExtendOptions`` (``full_ba``).
+
+Paper: section 3.2 (3.2.1 Eq. 1-6, 3.2.2 Eq. 7-11, 3.2.3), Algorithm 2, Figures 1 and 3.
+"""

@@ -1,11 +1,19 @@
-"""Moving every local model into its anchor's frame (paper section 3.2.3, Alg. 2 lines 4-13).
+"""Moving every local model into its anchor's frame (paper section 3.2.3, Alg. 2, lines 6 and 10).
 
-Each local model is mapped by the similarities composed along its MinST path to the anchor; an
-image registered in several models keeps the pose from the model nearest the anchor, and each
-camera the parameters of the model that registered most of its images.
+Alg. 2 merges each leaf into its neighbour, layer by layer, until the anchor holds every
+cluster; applied to the models, each local model is mapped by the similarities composed along
+its MinST path to the anchor (``MergePlan.path``: the merges it takes part in).  An
+image registered in several models keeps the pose from the model nearest the anchor.  A camera
+(its intrinsics do not depend on a model's frame) takes the mean of the parameters every local
+model estimated for it, each weighted by the observations that model has in that camera's
+images: independent self-calibrations of parts of the scene pooled as the final bundle
+adjustment would weigh them, so the merged model does not start from the calibration error of
+one cluster (which a final BA split into track parts, ``ba_max_observations``, would keep).
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 from graph.merge_plan import MergePlan
 from backend.sim3 import Sim3
@@ -13,7 +21,8 @@ from sfm.merge.cluster_graph import LocalModel
 
 
 def anchor_from_model(plan: MergePlan, edges: dict) -> dict[int, Sim3]:
-    """``anchor_from_node`` similarity of every node, composed along its tree path."""
+    """``anchor_from_node`` similarity of every node, composed along its tree path (Alg. 2's
+    merges of a leaf into its neighbour, lines 6 and 10, from the node up to the anchor)."""
     out = {}
     for node, path in plan.path.items():
         sim = Sim3()
@@ -26,15 +35,24 @@ def anchor_from_model(plan: MergePlan, edges: dict) -> dict[int, Sim3]:
 
 def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3]):
     """Poses (by image name) in the anchor frame, nearest-to-anchor model first, and camera
-    parameters (by camera id) from the model that registered most images of that camera."""
-    poses, params, votes = {}, {}, {}
+    parameters (by camera id) pooled over the models (module docstring): the merged cluster
+    ``C_final`` of Alg. 2 (section 3.2.3), before its refinement."""
+    poses = {}
+    estimates: dict[int, list[tuple[int, np.ndarray]]] = {}  # camera id -> (observations, params) per model
     for node in sorted(plan.clusters, key=lambda n: (len(plan.path[n]), n)):
         model = models[node].model
         for image in sorted(model.images.values(), key=lambda im: im.name):
             if image.name not in poses:
                 poses[image.name] = sims[node].transform_pose(image.cam_from_world_rotation, image.cam_from_world_translation)
+        observations: dict[int, int] = {}
+        for image in model.images.values():
+            observations[image.camera_id] = observations.get(image.camera_id, 0) + image.num_points3D
         for cam_id, cam in model.cameras.items():
-            n = sum(1 for im in model.images.values() if im.camera_id == cam_id)
-            if n > votes.get(cam_id, 0):
-                votes[cam_id], params[cam_id] = n, cam.params.copy()
+            estimates.setdefault(cam_id, []).append((observations.get(cam_id, 0), np.asarray(cam.params, np.float64)))
+    params = {}
+    for cam_id, found in sorted(estimates.items()):
+        w = np.array([n for n, _ in found], dtype=np.float64)
+        if w.sum() == 0:  # no model observes it: the parameters of the one nearest the anchor
+            w[0] = 1.0
+        params[cam_id] = (w[:, None] * np.stack([p for _, p in found])).sum(axis=0) / w.sum()
     return poses, params

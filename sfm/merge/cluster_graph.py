@@ -1,11 +1,12 @@
-"""The cluster graph of the local models and its merge plan (paper section 3.2.1-3.2.3, Alg. 2 lines 1-2).
+"""The cluster graph of the local models and its merge plan (paper section 3.2, Alg. 2, lines 1-2).
 
 Every pair of local models that share at least ``min_common_cameras`` registered images gets a
-similarity from their common cameras (``backend.similarity``: median scale ratio, Eq. 1-2, then
-rotation and translation by RANSAC, Eq. 3-6) weighted by the normalised MSD over their common 3D
-points (points observed through the same (image, keypoint)), Eq. 9-10; edges above ``max_msd``
-are dropped (the paper's dotted edges, Figure 4).  The Kruskal MinST over what remains and the
-minimum-height-tree anchor of each connected part are ``graph.merge_plan``'s.
+similarity from their common cameras (section 3.2.1, ``backend.similarity``: median scale
+ratio, Eq. 1-2, then rotation and translation by RANSAC, Eq. 3-6) weighted by the normalised
+MSD over their common 3D points (points observed through the same (image, keypoint)), section
+3.2.2, Eq. 10-11; edges above ``max_msd`` are dropped (the paper's dotted edges, Figure 3).  The
+Kruskal MinST over what remains and the minimum-height-tree anchor of each connected part
+(section 3.2.3, Alg. 2, lines 2-12) are ``graph.merge_plan``'s.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from backend.similarity import SimilarityOptions, estimate_similarity
 from graph.merge_plan import MergePlan, plan_merges
+from sfm.core import progress
 from sfm.core.model import INVALID_POINT3D, Reconstruction
 from sfm.merge.options import MergeOptions
 
@@ -25,6 +27,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LocalModel:
+    """One local model of the ``map`` stage: cluster ``k``'s model ``m`` (a node of the cluster graph)."""
+
     label: str  # "C<k>/<m>"
     model: Reconstruction
 
@@ -51,11 +55,15 @@ def common_data(a: Reconstruction, b: Reconstruction):
 
 
 def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: int = 0) -> dict:
-    """Similarity (``v_from_u``) and MSD of every pair of local models that can be aligned."""
+    """Similarity (``v_from_u``) and MSD of every pair of local models that can be aligned: the
+    cluster graph's edges (Alg. 2, line 1; section 3.2.1, Eq. 1-6, and section 3.2.2, Eq. 10-11)."""
     edges = {}
     sim_opts = SimilarityOptions(min_common_cameras=options.min_common_cameras, max_msd=options.max_msd, seed=seed)
+    num_pairs, done = len(models) * (len(models) - 1) // 2, 0
     for u in range(len(models)):
         for v in range(u + 1, len(models)):
+            done += 1
+            progress.report("model_pairs", done, num_pairs)
             data = common_data(models[u].model, models[v].model)
             if data is None or len(data[0]) < options.min_common_cameras:
                 continue
@@ -72,6 +80,41 @@ def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: i
 
 
 def plan_components(models: list[LocalModel], edges: dict) -> list[MergePlan]:
+    """The merge plan of every connected part of the cluster graph's used edges: Kruskal MinST and
+    minimum-height-tree anchor (section 3.2.3, Alg. 2, lines 2-12; ``graph.merge_plan``), a
+    model's size being its number of images."""
     sizes = {k: len(m.model.images) for k, m in enumerate(models)}
     weights = {(u, v): e["msd"] for (u, v), e in edges.items() if e["used"]}
     return plan_merges(list(range(len(models))), sizes, weights)
+
+
+def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> list[dict]:
+    """Why each merge component other than the first (Alg. 2 merges only along cluster-graph
+    edges) joins no other: the pair of local models, one inside and one outside, sharing the
+    most registered images, and what stopped their edge (no common image, fewer than
+    ``min_common_cameras``, no similarity found, or its MSD above ``max_msd``)."""
+    names = [{im.name for im in m.model.images.values()} for m in models]
+    found = []
+    for plan in plans[1:]:
+        inside = set(plan.clusters)
+        outside = [v for v in range(len(models)) if v not in inside]
+        best = max(((len(names[u] & names[v]), u, v) for u in sorted(inside) for v in outside), default=None)
+        entry = {"models": [models[u].label for u in sorted(inside)]}
+        if best is None:
+            found.append({**entry, "nearest": None, "common_images": 0, "reason": "no other local model"})
+            continue
+        common, u, v = best
+        edge = edges.get((min(u, v), max(u, v)))
+        if common == 0:
+            reason = "shares no registered image with any other local model"
+        elif common < options.min_common_cameras:
+            reason = (f"{models[u].label} and {models[v].label} share {common} registered images, fewer than "
+                      f"--min-common-cameras {options.min_common_cameras}")
+        elif edge is None:
+            reason = (f"{models[u].label} and {models[v].label} share {common} registered images but no "
+                      f"similarity fits them (RANSAC found no consensus)")
+        else:
+            reason = (f"{models[u].label} and {models[v].label} align with an MSD of {edge['msd']:.3g}, above "
+                      f"--max-msd {options.max_msd:g}")
+        found.append({**entry, "nearest": models[v].label, "common_images": common, "reason": reason})
+    return found

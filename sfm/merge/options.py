@@ -13,7 +13,16 @@ class MergeOptions(Options):
     """Options of the ``merge`` stage (``graphsfm merge``)."""
 
     max_msd: float = option(
-        SimilarityOptions.max_msd, "Cluster-graph edges whose MSD (Eq. 10, normalised by the common cameras' "
+        SimilarityOptions.max_msd, "Cluster-graph edges whose MSD (Eq. 11, normalised by the common cameras' "
         "extent) exceeds this are not used: the paper's dotted edges.", above=0)
     min_common_cameras: int = option(
         2, "Registered images two local models must share to be aligned (two fix a scale).", min=2)
+
+
+@dataclass(frozen=True)
+class ExtendOptions(Options):
+    """Options of ``graphsfm extend`` beyond those of the stages it runs again on the new images."""
+
+    full_ba: bool = option(
+        False, "After merging the new images into the model, bundle-adjust every image and point (cost grows "
+        "with the whole model) instead of the new images' region with the rest of the model held.")

@@ -1,33 +1,41 @@
-"""Global refinement of the merged model (paper Figure 1, after merging; section 3).
+"""Global refinement of the merged model (paper section 3 and Figure 1: after merging).
 
-All tracks of a merge component are triangulated with the merged poses, then one global BA and
-filtering, re-triangulation, and a second BA only when re-triangulation added enough ("in
-practice, it is enough to perform them once").
+All tracks of a merge component are triangulated with the merged poses, then global BA and
+filtering alternate with re-triangulation until re-triangulation changes almost nothing (the
+paper: "The re-triangulation step and bundle adjustment step can be executed alternatively until
+convergence"; COLMAP's global refinement stops the same way).  Merged poses come from similarity
+transforms, not from a BA over the merged tracks, so the first triangulation rejects observations
+that the first BA brings back within reach: on clusters joined through thin overlaps one
+alternation is not enough.
 """
 
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 
 from backend.memory import return_freed_memory
 from sfm.core.model import Reconstruction
 from sfm.mapper.bundle_adjuster import BundleAdjuster
+from sfm.mapper.incremental import MAX_REFINEMENT_CHANGE
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.output import to_reconstruction
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.state import MapperState
 
-# A second BA runs when re-triangulation after the first added more than this share of observations.
-MIN_RETRIANGULATION_GAIN = 0.02
+log = logging.getLogger(__name__)
+
+# The most global BAs of the refinement (COLMAP's ba_global_max_refinements).
+MAX_REFINEMENTS = 5
 
 
 def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],
                       camera_params: dict[int, np.ndarray]) -> Reconstruction:
     """Global refinement of merged poses (paper Figure 1, after merging; section 3): every
     track of the payload is triangulated with the given ``cam_from_world`` poses (by image
-    name) and camera parameters (by camera id), then global BA and filtering, then
-    re-triangulation, and a second global BA only if re-triangulation added more than
-    :data:`MIN_RETRIANGULATION_GAIN` of the observations.  Images without a pose stay
+    name) and camera parameters (by camera id), then global BA and filtering alternate with
+    re-triangulation (:func:`alternate_until_converged`).  Images without a pose stay
     unregistered.  These BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
     the merged clusters' own global BAs do (``MapperOptions.global_loss_scale``): the merged
     tracks were filtered against poses moved by similarity transforms, not by a BA over them."""
@@ -40,9 +48,23 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     state.set_poses(poses)
     adjuster = BundleAdjuster(state)
     state.retriangulate()
-    adjuster.global_(final=True, loss_scale=opts.loss_scale)
-    before = int(state.obs_inlier.sum())
-    state.retriangulate()
-    if state.obs_inlier.sum() > (1 + MIN_RETRIANGULATION_GAIN) * before:
-        adjuster.global_(final=True, loss_scale=opts.loss_scale)
+    alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
     return to_reconstruction(state)
+
+
+def alternate_until_converged(state: MapperState, adjust) -> int:
+    """Run ``adjust`` (a BA with its filtering), then re-triangulate, until re-triangulation
+    changes at most :data:`~sfm.mapper.incremental.MAX_REFINEMENT_CHANGE` of the inlier
+    observations (COLMAP's ba_global_max_refinement_change) or :data:`MAX_REFINEMENTS` BAs ran
+    (paper section 3: re-triangulation and BA "executed alternatively until convergence").
+    Returns the number of BAs."""
+    for rounds in range(1, MAX_REFINEMENTS + 1):
+        adjust()
+        before = int(state.obs_inlier.sum())
+        state.retriangulate()
+        changed = int(state.obs_inlier.sum()) - before
+        log.info("%s: refinement %d, re-triangulation changed %d of %d observations",
+                 state.payload.label, rounds, changed, before)
+        if changed <= MAX_REFINEMENT_CHANGE * max(before, 1):
+            break
+    return rounds

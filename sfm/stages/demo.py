@@ -9,19 +9,24 @@ truth (``sfm.evaluation.metrics``).
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 from sfm.errors import InputError
 from sfm.evaluation.ground_truth import read_gt_table
 from sfm.evaluation.metrics import evaluate
 from sfm.io.colmap_model import read_model
+from sfm.io.report import update_report
 from sfm.io.workspace import DATABASE, RECORDING
 from sfm.stages.reconstruct import ReconstructOptions, reconstruct
 from sfm.synthetic.options import DemoOptions, RenderOptions
 from sfm.synthetic.rendered import write_rendered_scene
 
+log = logging.getLogger(__name__)
 
-def run_demo(workspace: Path, demo: DemoOptions, options: ReconstructOptions | None = None) -> dict:
+
+def run_demo(workspace: Path, demo: DemoOptions, options: ReconstructOptions | None = None,
+             command: str | None = None) -> dict:
     """Render, reconstruct and evaluate in ``workspace`` (a new folder); a summary with the
     accuracy.  ``options``: the run's other options (the demo's seed and cluster bound win)."""
     workspace = Path(workspace)
@@ -33,9 +38,14 @@ def run_demo(workspace: Path, demo: DemoOptions, options: ReconstructOptions | N
         match=dataclasses.replace(options.match, seed=demo.seed),
         mapper=dataclasses.replace(options.mapper, seed=demo.seed))
     scene = write_rendered_scene(workspace / "scene", RenderOptions(num_images=demo.num_images, seed=demo.seed))
-    report = reconstruct(Path(scene["image_dir"]), workspace, options)
+    reconstruct(Path(scene["image_dir"]), workspace, options, command)
     result = evaluate(read_model(workspace / "sparse" / "0"), read_gt_table(Path(scene["gt_table"])))
-    return {"images": report["images"], "clusters": report.get("num_clusters"), "models": report.get("num_models"),
-            "registered": result.num_registered, "median_rotation_error_deg": result.median_rotation_error_deg,
-            "auc@1": result.auc[1], "auc@5": result.auc[5], "auc@10": result.auc[10], "times": report.get("times"),
-            "model": str(workspace / "sparse" / "0"), "recording": str(workspace / RECORDING)}
+    accuracy = result.to_dict(per_image=False)  # NaN as null
+    report = update_report(workspace, {"accuracy": accuracy})
+    log.info("demo: %d of %d images registered, median rotation error %.3g deg, AUC@1/5/10 %.3f/%.3f/%.3f",
+             result.num_registered, report["images"], result.median_rotation_error_deg, result.auc[1], result.auc[5],
+             result.auc[10])
+    return {"images": report["images"], "clusters": report["num_clusters"], "models": report["num_models"],
+            "registered": result.num_registered, "median_rotation_error_deg": accuracy["median_rotation_error_deg"],
+            "auc@1": result.auc[1], "auc@5": result.auc[5], "auc@10": result.auc[10], "times_s": report["times_s"],
+            "model": str((workspace / "sparse" / "0").resolve()), "recording": str((workspace / RECORDING).resolve())}

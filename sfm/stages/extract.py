@@ -1,7 +1,8 @@
 """The ``extract`` stage: SIFT keypoints and RootSIFT descriptors of every image, into database.db.
 
 :func:`run_extract` finds the images (``sfm.io.image_files``), reads their headers and EXIF,
-gives each a camera (``sfm.features.cameras``), runs :func:`sfm.features.extraction.extract_features`
+gives each a camera (``sfm.features.cameras``) and, from its EXIF GPS, a position prior
+(the database's ``pose_priors``, WGS84), runs :func:`sfm.features.extraction.extract_features`
 on each in parallel (on an executor of ``sfm.execution``), and writes each image as soon as it
 returns (``sfm.stages.extract_writer``).
 
@@ -13,10 +14,12 @@ Resuming: images that already have keypoints in ``WORK/database.db`` are skipped
 written as soon as its worker returns it (``sfm.stages.extract_writer``, which also keeps
 ``WORK/extract.json``), so an interrupted run loses only the images in flight.
 
-Parallelism: one task per image on an executor (``sfm.execution``): workers decode the image
-and run SIFT, and return numpy arrays; only this process writes the database.  On a remote
+Parallelism: one task per image on an executor (``sfm.execution``): workers decode the image,
+run SIFT, read the colour of each keypoint from the colour image (``sfm.features.colors``; with
+a recording, they also make the image's thumbnail from it) and return numpy arrays; only this
+process writes the database and the recording.  On a remote
 executor the tasks carry the image's bytes (no shared disk).  Local workers are capped by
-memory (``sfm.io.image_files.workers_for_memory``).
+memory (``sfm.features.worker_memory``).
 """
 
 from __future__ import annotations
@@ -30,17 +33,24 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
-
+from sfm.core import progress
 from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor, WorkerDied
 from sfm.features.cameras import CameraSpec, IntrinsicsTable, assign_cameras, read_intrinsics, warn_unused_lines
 from sfm.features.extraction import extract_features
 from sfm.features.options import ExtractOptions
 from sfm.io.database import Database
-from sfm.io.image_files import BadImageError, ImageInfo, find_images, probe_image, read_gray, workers_for_memory
+from sfm.features.colors import keypoint_colors
+from sfm.features.worker_memory import workers_for_memory
+from sfm.io.image_files import (BadImageError, ImageInfo, find_images, mask_path, probe_image, read_gray, read_mask,
+                                read_rgb)
+from sfm.io.report import update_report
 from sfm.io.workspace import DATABASE
 from sfm.stages.extract_writer import SIDECAR, ExtractWriter, extract_ledger
+from sfm.viz.frontend import log_image
+from sfm.viz.recorder import Recorder
+from sfm.viz.thumbnails import Thumbnail, make_thumbnail
+from sfm.viz.tour import extract_text
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +81,9 @@ class _Job:
     path: str
     options: ExtractOptions
     data: bytes | None = None  # the file's bytes, for workers on other machines (no shared disk)
+    mask: str | None = None  # the mask file (``--masks``), if the image has one
+    mask_data: bytes | None = None  # its bytes, for workers on other machines
+    thumbnail_size: int = 0  # > 0: also return a thumbnail of this size for the recording
 
 
 @dataclass(frozen=True)
@@ -81,6 +94,8 @@ class _Extracted:
     keypoints: np.ndarray | None = None
     descriptors: np.ndarray | None = None
     digest: str = ""
+    colors: np.ndarray | None = None  # (N, 3) uint8 RGB at each keypoint
+    thumbnail: Thumbnail | None = None
 
 
 def _probe_job(job: _Job) -> tuple[str, ImageInfo | None, str]:
@@ -94,7 +109,15 @@ def _extract_job(job: _Job) -> _Extracted:
     try:
         data = job.data if job.data is not None else Path(job.path).read_bytes()
         gray, info = read_gray(data)
-        keypoints, descriptors = extract_features(gray, job.options)
+        mask = None
+        if job.mask is not None:
+            mask = read_mask(job.mask_data if job.mask_data is not None else Path(job.mask).read_bytes(), info)
+        keypoints, descriptors = extract_features(gray, job.options, mask)
+        del gray
+        rgb = read_rgb(data)  # one more decode: about 2% of SIFT's time
+        colors = keypoint_colors(rgb, keypoints)
+        thumbnail = make_thumbnail(rgb, job.thumbnail_size) if job.thumbnail_size else None
+        del rgb
     except BadImageError as exc:
         return _Extracted(job.name, str(exc))
     except OSError as exc:
@@ -105,21 +128,31 @@ def _extract_job(job: _Job) -> _Extracted:
         last_line = (str(exc).strip().splitlines() or ["unknown"])[-1]
         return _Extracted(job.name, f"OpenCV error: {last_line}")
     digest = hashlib.blake2b(data, digest_size=16).hexdigest()
-    return _Extracted(job.name, "", info, keypoints, descriptors, digest)
+    return _Extracted(job.name, "", info, keypoints, descriptors, digest, colors, thumbnail)
 
 
 def _with_bytes(jobs: Iterable[_Job]) -> Iterator[_Job]:
     """Jobs carrying their file's bytes (read lazily, as the executor asks for the next job),
     for workers on other machines."""
     for job in jobs:
+        data = mask_data = None  # on a failed read the worker reports the error as it would locally
         try:
             data = Path(job.path).read_bytes()
+            mask_data = Path(job.mask).read_bytes() if job.mask is not None else None
         except OSError:
-            data = None  # the worker reports the error as it would for a local read
-        yield replace(job, data=data)
+            pass
+        yield replace(job, data=data, mask_data=mask_data)
 
 
 # ----------------------------------------------------------------------------- the stage
+def _mask_of(options: ExtractOptions, name: str) -> str | None:
+    """The mask file of image ``name`` (COLMAP's ``MASKS/<name>.png``), None without one."""
+    if options.masks is None:
+        return None
+    path = mask_path(options.masks, name)
+    return str(path) if path.is_file() else None
+
+
 def _probe_all(jobs: list[_Job], executor, max_workers: int, bad: list[tuple[str, str]]) -> dict[str, ImageInfo]:
     """Each image's header (size, EXIF): on the local workers, or here when they are remote
     (header reads are cheaper than shipping every file)."""
@@ -137,13 +170,13 @@ def _probe_all(jobs: list[_Job], executor, max_workers: int, bad: list[tuple[str
 
 def _extract_all(
     jobs: list[_Job], infos: dict[str, ImageInfo], specs: dict[str, CameraSpec],
-    writer: ExtractWriter, executor, max_workers: int, bad: list[tuple[str, str]],
+    writer: ExtractWriter, executor, max_workers: int, bad: list[tuple[str, str]], recorder: Recorder,
 ) -> int:  # fmt: skip
     first_by_digest: dict[str, str] = {}
     extracted = 0
     items = _with_bytes(jobs) if executor.remote else jobs
     results = executor.map(_extract_job, items, num_items=len(jobs), max_workers=max_workers)
-    for result in tqdm(results, total=len(jobs), desc="extract", unit="img", disable=None):
+    for result in progress.bar(results, total=len(jobs), desc="extract", unit="img"):
         r = result.value
         error, probed = r.error, infos[r.name]
         if not error and (r.info.width, r.info.height) != (probed.width, probed.height):
@@ -158,18 +191,22 @@ def _extract_all(
                 "zero-baseline pair", r.name, first_by_digest[r.digest],
             )  # fmt: skip
         first_by_digest.setdefault(r.digest, r.name)
-        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors)
+        writer.write(r.name, specs[r.name], r.keypoints, r.descriptors, r.colors, probed.gps)
+        if r.thumbnail is not None:
+            log_image(recorder, r.name, r.thumbnail, r.keypoints)
         extracted += 1
     return extracted
 
 
 def run_extract(
-    image_dir: Path, workspace: Path, options: ExtractOptions = ExtractOptions(), executor=None
+    image_dir: Path, workspace: Path, options: ExtractOptions = ExtractOptions(), executor=None,
+    recorder: Recorder | None = None,
 ) -> ExtractResult:
     """Extract features of every image under ``image_dir`` into ``workspace/database.db``.
 
     ``executor``: where SIFT runs (``sfm.execution``; default: a local pool of one process per
     core, fewer when memory is short); the database is written here, by this process only.
+    ``recorder``: each image's thumbnail and keypoints, and the stage's text, go to it.
 
     Skips images that already have keypoints there; raises :class:`InputError` when no image is
     found or usable, when the intrinsics file is malformed or disagrees with an image's size, or
@@ -177,14 +214,19 @@ def run_extract(
     closed (complete on its own, no WAL file) when this returns or raises.
     """
     t0 = time.perf_counter()
+    progress.stage("extract")
     executor = executor or LocalExecutor()
+    recorder = recorder or Recorder.disabled()
     image_dir, workspace = Path(image_dir), Path(workspace)
     if not image_dir.is_dir():
-        raise InputError(f"image folder not found: {image_dir}")
+        raise InputError(f"--images: {image_dir} is a file, not a folder of images" if image_dir.exists()
+                         else f"image folder not found: {image_dir}")
     names = find_images(image_dir)
     if not names:
         raise InputError(f"no images found in {image_dir}")
     table: IntrinsicsTable | None = None
+    if options.masks is not None and not Path(options.masks).is_dir():
+        raise InputError(f"mask folder not found: {options.masks}")
     if options.intrinsics is not None:
         table = read_intrinsics(options.intrinsics)
         warn_unused_lines(table, names)
@@ -200,15 +242,18 @@ def run_extract(
         if skipped:
             logger.info("%d of %d images already have features in %s: skipped", skipped,
                         len(names), db.path)  # fmt: skip
-        jobs = [_Job(n, str(image_dir / n), options) for n in todo]
+        thumbnail_size = recorder.options.thumbnail_size if recorder.requested else 0  # no wait for the stream
+        recorder.image_dir = image_dir
+        jobs = [_Job(n, str(image_dir / n), options, mask=_mask_of(options, n), thumbnail_size=thumbnail_size)
+                for n in todo]
         if jobs:
             max_workers = workers_for_memory(options.max_image_size)
             try:
                 infos = _probe_all(jobs, executor, max_workers, bad)
-                specs = assign_cameras(infos, options.camera_mode, table)
+                specs = assign_cameras(infos, options.camera_mode, table, options.camera_model)
                 writer.check_reused(specs)
                 jobs = [j for j in jobs if j.name in infos]
-                extracted = _extract_all(jobs, infos, specs, writer, executor, max_workers, bad)
+                extracted = _extract_all(jobs, infos, specs, writer, executor, max_workers, bad, recorder)
             except WorkerDied as exc:
                 raise RuntimeError(
                     "a feature-extraction worker died (out of memory on a large image?); rerun to resume, "
@@ -222,7 +267,12 @@ def run_extract(
         num_with_keypoints = len(db.images_with_keypoints())
         mean_keypoints = db.num_keypoints() / max(num_with_keypoints, 1)
         num_cameras = db.num_cameras()
+        if recorder.enabled:
+            log_extract(recorder, db, options, bad)
     ledger.finish("extract", "")
+    update_report(workspace, {"image_dir": str(image_dir.resolve()),
+                              "bad_files": [{"name": n, "reason": r} for n, r in bad]},
+                  {"extract": time.perf_counter() - t0})
     result = ExtractResult(len(names), extracted, skipped, bad, num_cameras, mean_keypoints,
                            time.perf_counter() - t0)  # fmt: skip
     logger.info(
@@ -231,3 +281,18 @@ def run_extract(
         mean_keypoints, result.time_s,
     )  # fmt: skip
     return result
+
+
+def log_extract(recorder: Recorder, db: Database, options: ExtractOptions, bad: list[tuple[str, str]]) -> None:
+    """The images this run did not extract (a resumed run) read again for their thumbnails,
+    then the stage's text of the tour."""
+    recorder.stage("extract")
+    images = db.read_images()
+    for image_id, record in sorted(images.items(), key=lambda kv: kv[1].name):
+        if record.name not in recorder.thumbnails:
+            thumb = recorder.thumbnail(record.name)
+            keypoints = db.read_keypoints(image_id)
+            if thumb is not None and len(keypoints):
+                log_image(recorder, record.name, thumb, keypoints)
+    counts = np.array(list(db.keypoint_counts().values()), dtype=np.int64)
+    recorder.tour("extract", extract_text(counts, db.num_cameras(), options, bad))

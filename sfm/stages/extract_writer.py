@@ -4,10 +4,14 @@
 each image as soon as its worker returns it. Each image is written (camera if new, image row,
 keypoints, descriptors) in one transaction, so an interrupted run loses only the images in
 flight, and a resumed run skips the images that already have keypoints in ``WORK/database.db``.
+The colour of each keypoint (``sfm.features.colors``) goes into the same transaction.
 ``WORK/extract.json`` (written atomically) maps each shared camera's group key to its camera id,
-so a resumed run puts new images on the cameras it made before; the options a run used are
+so a resumed run puts new images on the cameras it made before, and lists the cameras whose
+intrinsics the ``--intrinsics`` file gave (``given_intrinsics``: the mapper holds them fixed,
+:func:`given_camera_ids`); the options a run used are
 compared in the stage ledger, ``WORK/stages.json`` (:func:`extract_ledger`), which drops the
-database when they changed.  COLMAP's tables hold nothing extra.
+database when they changed.  COLMAP's tables hold nothing extra (the colours have a table of
+their own).
 """
 
 from __future__ import annotations
@@ -37,16 +41,32 @@ SIDECAR = "extract.json"
 def _options_json(options: ExtractOptions) -> dict[str, Any]:
     d = dataclasses.asdict(options)
     d["intrinsics"] = None if options.intrinsics is None else str(options.intrinsics)
+    d["masks"] = None if options.masks is None else str(options.masks)
     return d
+
+
+def _masks_record(masks: Path) -> str:
+    """A fingerprint of the mask folder: each mask's name, size and modification time."""
+    files = sorted(p for p in Path(masks).rglob("*.png") if p.is_file())
+    return fingerprint([(p.relative_to(masks).as_posix(), p.stat().st_size, p.stat().st_mtime_ns) for p in files])
+
+
+def extract_options_record(options: ExtractOptions) -> dict:
+    """What the ledger records of the extract options: the options, the intrinsics file by its
+    content, the mask folder by its files' names, sizes and times."""
+    record = options_record(options)
+    if options.intrinsics is not None and Path(options.intrinsics).is_file():
+        record["intrinsics"] = fingerprint(Path(options.intrinsics).read_bytes())
+    if options.masks is not None and Path(options.masks).is_dir():
+        record["masks"] = _masks_record(Path(options.masks))
+    return record
 
 
 def extract_ledger(workspace: Path, options: ExtractOptions) -> Ledger:
     """The stage ledger, after dropping the database when the options that decide the features
-    or the cameras changed since the images in it were extracted (the intrinsics file counts by
-    its content): every image is then extracted again, and every later stage runs again."""
-    record = options_record(options)
-    if options.intrinsics is not None and Path(options.intrinsics).is_file():
-        record["intrinsics"] = fingerprint(Path(options.intrinsics).read_bytes())
+    or the cameras changed since the images in it were extracted (:func:`extract_options_record`):
+    every image is then extracted again, and every later stage runs again."""
+    record = extract_options_record(options)
 
     def reset() -> None:
         for name in (DATABASE, DATABASE + "-wal", DATABASE + "-shm", SIDECAR):
@@ -72,6 +92,8 @@ class ExtractWriter:
             str(k): v for k, v in (cameras.items() if isinstance(cameras, dict) else ())
             if isinstance(v, int) and v in self.cameras  # a kill may leave ids never committed
         }  # fmt: skip
+        given = data.get("given_intrinsics")
+        self.given = {v for v in (given if isinstance(given, list) else ()) if isinstance(v, int) and v in self.cameras}
 
     def _load(self) -> dict:
         if not self.sidecar.exists():
@@ -86,7 +108,7 @@ class ExtractWriter:
     def save(self) -> None:
         write_json_atomic(self.sidecar, {
             "version": 1, "image_dir": self.image_dir, "options": _options_json(self.options),
-            "cameras": self.camera_ids,
+            "cameras": self.camera_ids, "given_intrinsics": sorted(self.given),
         })  # fmt: skip
 
     def names_with_keypoints(self) -> set[str]:
@@ -113,18 +135,41 @@ class ExtractWriter:
         self.next_camera_id += 1
         if spec.shared:  # record before the commit: a kill in between leaves a dangling entry,
             self.camera_ids[spec.key] = camera_id  # which the next run drops, never a lost key
+        if spec.given:
+            self.given.add(camera_id)
+        if spec.shared or spec.given:
             self.save()
         self.db.add_camera(spec.model, spec.width, spec.height, spec.params,
                            spec.prior_focal_length, camera_id=camera_id)  # fmt: skip
         return camera_id
 
-    def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray):
+    def write(self, name: str, spec: CameraSpec, keypoints: np.ndarray, descriptors: np.ndarray,
+              colors: np.ndarray | None = None, gps: tuple[float, float, float] | None = None):
+        """One image (its camera if new, its row, keypoints, descriptors, keypoint colours and EXIF
+        GPS as a WGS84 pose prior) in one transaction."""
         with self.db.transaction():
             camera_id = self._camera_id(name, spec)
             image_id = self.image_ids.get(name)
             if image_id is None:
                 image_id = self.db.add_image(name, camera_id)
+            if gps is not None:
+                self.db.write_pose_prior(image_id, camera_id, gps)
             self.db.write_keypoints(image_id, keypoints)
             self.db.write_descriptors(image_id, descriptors)
+            if colors is not None:
+                self.db.write_keypoint_colors(image_id, colors)
         self.image_ids[name] = image_id
         self.image_cameras[name] = camera_id
+
+
+def given_camera_ids(workspace: Path) -> set[int] | None:
+    """Ids of the cameras whose intrinsics the ``--intrinsics`` file gave, from
+    ``WORK/extract.json``; None when the workspace has no such record (a database made
+    elsewhere, or by ``graphsfm synth``)."""
+    path = Path(workspace) / SIDECAR
+    try:
+        data = read_json(path) if path.exists() else None
+    except (OSError, ValueError):
+        return None
+    given = data.get("given_intrinsics") if isinstance(data, dict) else None
+    return {v for v in given if isinstance(v, int)} if isinstance(given, list) else None

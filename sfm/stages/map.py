@@ -10,31 +10,39 @@ Without ``WORK/clusters.json`` every image is in one cluster and the models go t
 from __future__ import annotations
 
 import logging
+import os
 import shutil
+import threading
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm import tqdm
-
+from sfm.core import progress
 from sfm.core.model import Reconstruction
 from sfm.errors import InputError, NoModelError
 from sfm.execution.local import LocalExecutor, TaskResult
 from sfm.io.colmap_model import read_model, write_model
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
-from sfm.io.workspace import CLUSTERS, DATABASE, read_json, update_report
+from sfm.io.report import model_facts, models_fields, update_report
+from sfm.io.workspace import CLUSTERS, DATABASE, image_dir_of, read_georegistration, read_json, write_georegistration
+from sfm.mapper.growth import Growth
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.payload import MapperInput
+from sfm.stages.georegister import georegister_models
 from sfm.stages.payloads import ClusterPayloads
-from sfm.viz.recorder import Recorder, log_model
+from sfm.viz.mapping import log_cluster_error, log_growth, log_local_model
+from sfm.viz.models import log_final_models
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import map_text
 
 log = logging.getLogger(__name__)
 
 
-def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
-    """Models to ``folder/0``, ``folder/1``, ... (stale numbered folders removed first)."""
+def write_models(models: list[Reconstruction], folder: Path, registrations: list[dict | None] | None = None) -> list[dict]:
+    """Models to ``folder/0``, ``folder/1``, ... (stale numbered folders removed first), each
+    with its ``georegistration.json`` when ``registrations`` has one."""
     if folder.exists():
         for old in folder.iterdir():
             if old.is_dir() and old.name.isdigit():
@@ -42,7 +50,10 @@ def write_models(models: list[Reconstruction], folder: Path) -> list[dict]:
     out = []
     for m, model in enumerate(models):
         write_model(model, folder / str(m))
-        out.append({"path": str(folder / str(m)), **model.summary()})
+        registration = registrations[m] if registrations else None
+        write_georegistration(folder / str(m), registration)
+        out.append({"path": os.path.abspath(folder / str(m)), **model.summary(),
+                    **({"georegistered": True} if registration else {})})
     return out
 
 
@@ -57,7 +68,8 @@ class MapResult:
 
 
 def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None = None, executor=None) -> MapResult:
-    """Incremental SfM of every cluster (or of all images) in ``workspace``.
+    """Incremental SfM of every cluster (or of all images) in ``workspace``, clusters in parallel
+    (paper section 3.2).
 
     Clusters that an earlier run with the same options and input finished (``WORK/stages.json``)
     are reused, not recomputed, so a run killed during ``map`` loses only the clusters in flight."""
@@ -68,9 +80,11 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     db_path = workspace / DATABASE
     if not db_path.exists():
         raise InputError(f"no database at {db_path}: run extract and match (or synth) first")
-    clusters = None
+    clusters, clusters_warnings = None, []
     if (workspace / CLUSTERS).exists():
-        clusters = [c["members"] for c in read_json(workspace / CLUSTERS)["clusters"]]
+        clusters_json = read_json(workspace / CLUSTERS)
+        clusters = [c["members"] for c in clusters_json["clusters"]]
+        clusters_warnings = clusters_json.get("warnings", [])
     # One cluster (all images fit): its models are final and go straight to sparse/.
     direct = clusters is None or len(clusters) == 1
     payloads = ClusterPayloads(db_path, clusters, fixed_intrinsics=not options.refine_given_intrinsics,
@@ -86,21 +100,26 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         ledger.start("map", opts, input_fp, keep={"clusters": {}})
         done = {}
     recorder.stage("map")
+    recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
     per_cluster: list[dict] = [{} for _ in payloads.labels]
     for k, label in enumerate(payloads.labels):
         if label in done:
             per_cluster[k] = {**done[label], "reused": True}
             for m in range(len(done[label]["models"])) if recorder.enabled else ():
-                model = read_model(_folder(workspace, direct, label) / str(m))
-                log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
+                log_local_model(recorder, label, m, read_model(_folder(workspace, direct, label) / str(m)))
     todo = [k for k, label in enumerate(payloads.labels) if label not in done]
+    model_names: dict[str, set[str]] = {}  # registered image names of each model written now, by path
     if done:
         log.info("map: %d of %d clusters finished by an earlier run with the same options: skipped (%s)",
                  len(done), len(payloads), ", ".join(sorted(done)))
-    for k, res in _map_clusters(payloads, todo, options.for_model(direct), executor, recorder):
+    max_points = recorder.options.record_points if recorder.enabled else 0
+    unregistered: dict[str, int] = {}
+    for k, res in map_clusters(payloads, todo, options.for_model(direct), executor, max_points):
         label = payloads.labels[k]
-        models = res.value or []
-        written = write_models(models, _folder(workspace, direct, label))
+        models, growth = res.value or ([], None)
+        registrations = georegister_models(models, db_path, options) if direct else None
+        written = write_models(models, _folder(workspace, direct, label), registrations)
+        model_names.update({w["path"]: {im.name for im in m.images.values()} for w, m in zip(written, models)})
         per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
                           "models": written, "error": res.error}
         if res.error is None:  # a failed cluster is tried again by the next run
@@ -108,28 +127,38 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
             ledger.save()
         else:
             log.warning("cluster %s failed: %s", label, res.error)
+            log_cluster_error(recorder, label, payloads.names[k], res.error)
+        if growth is not None:
+            unregistered[label] = log_growth(recorder, growth)
         for m, model in enumerate(models):
-            log_model(recorder, f"clusters/{label}" + (f"/{m}" if m else ""), model)
+            log_local_model(recorder, label, m, model, growth_logged=growth is not None)
     flat = [m for c in per_cluster for m in c["models"]]
     elapsed = time.perf_counter() - t0
     num_images = len({n for names in payloads.names for n in names})  # clusters overlap
-    fields = {"images": num_images, "executor": executor.name, "scheduler": getattr(executor, "address", None),
-              "clusters": per_cluster, "num_clusters": len(payloads),
-              "mapper_options": asdict(options), "warnings": []}  # no stale warning of an earlier run
+    fields = {"executor": executor.name, "scheduler": getattr(executor, "address", None),
+              "workers": getattr(executor, "workers", None), "clusters": per_cluster, "num_clusters": len(payloads),
+              "num_local_models": len(flat), "warnings": [],  # no stale warning of an earlier run
+              "georegistration": read_georegistration(workspace / "sparse" / "0") if direct else None}
     if direct:
         flat.sort(key=lambda m: -m["registered"])
-        fields["num_models"] = len(flat)
-        if flat:
-            fields.update({k: flat[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
+        fields.update(models_fields(flat), merged=False, merge_components=0)
+        fields.update(model_facts(workspace, [model_names.get(m["path"]) or registered_names(Path(m["path"])) for m in flat]))
         if len(flat) > 1:
             sizes = ", ".join(str(m["registered"]) for m in flat)
             fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction (sizes {sizes})"]
     failed = fields["failed_clusters"] = [c["cluster"] for c in per_cluster if c["error"]]
+    if recorder.enabled:
+        rows = [{**c, "unregistered": unregistered.get(c["cluster"], "?")} for c in per_cluster]
+        recorder.tour("map", map_text(rows, num_images, direct, options))
+        if direct and flat:
+            recorder.stage("final")
+            log_final_models(recorder, [read_model(m["path"]) for m in flat], num_images, options)
     if failed:
         fields["warnings"].append(failed_clusters_warning(failed))
     for warning in fields["warnings"]:
         log.warning("%s", warning)
-    update_report(workspace, fields, {"T_SfM": elapsed})
+    fields["warnings"] = clusters_warnings + fields["warnings"]  # the cluster stage logged its own
+    update_report(workspace, fields, {"map": elapsed})
     ledger.finish("map", fingerprint(input_fp, opts, failed))
     if not flat:
         raise NoModelError("no model could be made: no image pair could be reconstructed (too few inliers or too small baselines)")
@@ -138,29 +167,86 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
 
 
 def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]:
-    """The ``map`` stage's task: one cluster's payload -> its local models (paper section 3.2:
-    "image clusters are distributed into servers"); safe in any worker process."""
+    """One cluster's payload -> its local models (paper section 3.2: "image clusters are
+    distributed into servers"); safe in any worker process."""
     payload, options = task
-    return reconstruct_incremental(payload, options)
+    with progress.task(payload.label):
+        return reconstruct_incremental(payload, options)
 
 
-def _map_clusters(payloads: ClusterPayloads, todo: list[int], options: MapperOptions, executor,
-                  recorder: Recorder) -> Iterator[tuple[int, TaskResult]]:
+def map_cluster_growth(task: tuple[MapperInput, MapperOptions, int]) -> tuple[list[Reconstruction], Growth | None]:
+    """The ``map`` stage's task: :func:`map_cluster`, and with ``max_points > 0`` how the
+    models grew (``sfm.mapper.growth``, at most that many points per step) for the recording,
+    which this process cannot write."""
+    payload, options, max_points = task
+    growth = Growth(payload.label, list(payload.names), max_points) if max_points > 0 else None
+    with progress.task(payload.label):
+        return reconstruct_incremental(payload, options, growth), growth
+
+
+def map_clusters(payloads: ClusterPayloads, todo: list[int], options: MapperOptions, executor,
+                 max_points: int) -> Iterator[tuple[int, TaskResult]]:
     """``(cluster index, result)`` of every cluster in ``todo`` as it finishes.  The largest go
     first, so the pool is not left waiting on one big straggler; each payload is read only when
-    a worker is about to take it.  Run in this process, the model is logged as it grows."""
+    a worker is about to take it.  Results are :func:`map_cluster_growth`'s, wherever the
+    cluster ran."""
     order = sorted(todo, key=lambda k: -payloads.sizes[k])
-    task = map_cluster
-    if executor.runs_in_process(len(order)):
-        task = lambda t: reconstruct_incremental(*t, recorder)  # noqa: E731 - not pickled
-    items = ((payloads[k], options) for k in order)
-    bar = tqdm(total=len(order), desc="local SfM", unit="cluster", disable=None)
-    try:
-        for res in executor.map(task, items, num_items=len(order), ordered=False, errors="return"):
-            bar.update()
+    items = ((payloads[k], options, max_points) for k in order)
+    display = MapProgress({payloads.labels[k]: payloads.sizes[k] for k in order})
+    with display, progress.listen(display.event):
+        for res in executor.map(map_cluster_growth, items, num_items=len(order), ordered=False, errors="return"):
+            display.finished(payloads.labels[order[res.index]])
             yield order[res.index], res
-    finally:
-        bar.close()
+
+
+class MapProgress:
+    """The map stage's progress bar: images registered over all clusters (a finished cluster
+    counts all its images), the clusters running with their own count, and the iterations and
+    cost of a final BA; events come from the workers (``sfm.core.progress``)."""
+
+    def __init__(self, sizes: dict[str, int]) -> None:
+        self.sizes, self.registered, self.done = sizes, dict.fromkeys(sizes, 0), set()
+        self.note: dict[str, str] = {}
+        self.lock = threading.Lock()
+        self.bar = progress.bar(total=sum(sizes.values()), desc="map", unit="img")
+        progress.stage("map", f"0 of {len(sizes)} clusters finished")
+
+    def event(self, event: dict, task: str) -> None:
+        with self.lock:
+            if task not in self.sizes or task in self.done:
+                return
+            if event["kind"] == "registered":
+                self.registered[task] = min(int(event["done"]), self.sizes[task])
+                self.note[task] = f"{task} {self.registered[task]}/{self.sizes[task]}"
+            elif event["kind"] == "final_ba":
+                self.note[task] = f"{task} final BA it {event['done']} cost {event['cost']:.4g}"
+            self._show()
+
+    def finished(self, label: str) -> None:
+        with self.lock:
+            self.done.add(label)
+            self.registered[label] = self.sizes[label]
+            self.note.pop(label, None)
+            progress.stage("map", f"{len(self.done)} of {len(self.sizes)} clusters finished")
+            self._show()
+
+    def _show(self) -> None:
+        self.bar.n = sum(self.registered.values())
+        running = ", ".join(self.note[k] for k in sorted(self.note))
+        self.bar.set_postfix_str(f"clusters {len(self.done)}/{len(self.sizes)}" + (f" | {running}" if running else ""),
+                                 refresh=False)
+        self.bar.refresh()
+
+    def __enter__(self) -> MapProgress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.close()
+
+
+def registered_names(folder: Path) -> set[str]:
+    """The names of the registered images of the model in ``folder``."""
+    return {im.name for im in read_model(folder).images.values()}
 
 
 def failed_clusters_warning(failed: list[str]) -> str:

@@ -19,16 +19,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
-
+from sfm.core import progress
+from sfm.core.geodesy import enu_from_wgs84
 from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor
 from sfm.io.database import Database
+from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.io.ledger import options_record, resume_or_restart
+from sfm.io.report import update_report
 from sfm.matching.options import MatchOptions
 from sfm.matching.pair_matcher import PairBatch, close_matchers, match_batch
-from sfm.matching.pairs import select_pairs
+from sfm.matching.pairs import extension_pairs, select_pairs
 from sfm.matching.verification import to_colmap_pixels
+from sfm.io.database_schema import TwoViewConfig
+from sfm.io.workspace import image_dir_of
+from sfm.viz.frontend import log_image_graph, log_match_pair, pair_sample
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import match_text
 
 logger = logging.getLogger(__name__)
 
@@ -91,13 +98,35 @@ def _usable_images(db: Database, ordered_ids: list[int], names: dict[int, str]) 
     return usable
 
 
-def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None) -> MatchResult:
+def _gps_positions(db: Database, image_ids: list[int]):
+    """(N, 3) east-north-up metres of the images' WGS84 position priors (origin: their mean),
+    NaN rows for images without one."""
+    priors = db.read_pose_priors()
+    lla = np.full((len(image_ids), 3), np.nan)
+    for row, i in enumerate(image_ids):
+        p = priors.get(i)
+        if p is not None and p.coordinate_system == COORDINATES_WGS84:
+            lla[row] = p.position
+    known = np.all(np.isfinite(lla), axis=1)
+    if not known.any():
+        logger.warning("pairs spatial: no image has a GPS position; retrieval pairs only")
+        return lla
+    logger.info("pairs spatial: %d of %d images have a GPS position", known.sum(), len(image_ids))
+    lla[known] = enu_from_wgs84(lla[known], lla[known].mean(axis=0))
+    return lla
+
+
+def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=None,
+              recorder: Recorder | None = None) -> MatchResult:
     """Match and verify the selected pairs of ``workspace/database.db`` (see module docstring).
 
     ``executor``: where the pairs are matched (``sfm.execution``; default: a local pool of one
-    process per core); only this process writes the database."""
+    process per core); only this process writes the database.  ``recorder``: the image graph,
+    the inlier matches of a sample of pairs and the stage's text go to it."""
     start = time.perf_counter()
+    progress.stage("match")
     executor = executor or LocalExecutor()
+    recorder = recorder or Recorder.disabled()
     db_path = Path(workspace) / "database.db"
     if not db_path.is_file():
         raise InputError(f"no database at {db_path}: run `graphsfm extract` first")
@@ -112,9 +141,7 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
             raise InputError(f"{len(usable)} image(s) in {db_path} with keypoints and descriptors: SfM needs at least 2")
         ledger = resume_or_restart(workspace, "match", options_record(options), db.clear_matches,
                                    "the stored matches are deleted and every pair is matched again")
-        pairs = select_pairs(usable, options.pairs, top_k=options.top_k, sequential=options.sequential,
-                             exhaustive_threshold=options.exhaustive_threshold, seed=options.seed,
-                             load_descriptors=db.read_descriptors)  # fmt: skip
+        pairs = select_pairs(usable, options.pairs, **_pair_arguments(db, usable, options))
         done = db.pairs_with_geometry()
         todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
         skipped = len(pairs) - len(todo)
@@ -123,9 +150,57 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         camera_of = {i: r.camera_id for i, r in images.items()}
         times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
+        if recorder.enabled:
+            log_match(recorder, db, options, len(pairs), workspace)
     ledger.finish("match", "")
+    update_report(workspace, {}, {"match": time.perf_counter() - start})
+    logger.info("match: %d pairs matched now, %d verified in all (median %d inliers), %.1f s", len(todo),
+                len(inliers), int(np.median(inliers)) if len(inliers) else 0, time.perf_counter() - start)
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=skipped,
+        num_pairs_processed=len(todo), num_verified=len(inliers),
+        median_inliers=float(np.median(inliers)) if len(inliers) else 0.0,
+        time_match_s=times[0], time_verify_s=times[1], time_total_s=time.perf_counter() - start,
+    )  # fmt: skip
+
+
+def _pair_arguments(db: Database, image_ids: list[int], options: MatchOptions) -> dict:
+    """The pair selection's keyword arguments from the options (GPS positions read only for
+    ``--pairs spatial``)."""
+    positions = _gps_positions(db, image_ids) if options.pairs == "spatial" else None
+    return {"top_k": options.top_k, "sequential": options.sequential,
+            "exhaustive_threshold": options.exhaustive_threshold, "seed": options.seed,
+            "load_descriptors": db.read_descriptors, "positions": positions,
+            "spatial_neighbors": options.spatial_neighbors, "spatial_max_distance": options.spatial_max_distance}
+
+
+def match_extension(workspace: Path, new_names: list[str], options: MatchOptions = MatchOptions(),
+                    executor=None) -> MatchResult:
+    """Match and verify the pairs of images added to a finished model (``graphsfm extend``):
+    the pairs with at least one of ``new_names`` (``sfm.matching.pairs.extension_pairs``), so
+    the work grows with the new images.  Pairs already verified are skipped (resuming), and the
+    stored matches of the old images are never dropped, whatever the options."""
+    start = time.perf_counter()
+    executor = executor or LocalExecutor()
+    db_path = Path(workspace) / "database.db"
+    with Database(db_path) as db:
+        images = db.read_images()
+        names = {i: r.name for i, r in images.items()}
+        wanted = set(new_names)
+        ordered = sorted(images, key=lambda i: names[i])
+        usable = _usable_images(db, ordered, names)
+        new = [i for i in usable if names[i] in wanted]
+        old = [i for i in usable if names[i] not in wanted]
+        pairs = extension_pairs(new, old, options.pairs, **_pair_arguments(db, new + old, options))
+        done = db.pairs_with_geometry()
+        todo = [(int(a), int(b)) for a, b in pairs if (int(a), int(b)) not in done]
+        logger.info("extension: %d new and %d old images, %d pairs selected, %d already verified (resumed), %d to match",
+                    len(new), len(old), len(pairs), len(pairs) - len(todo), len(todo))  # fmt: skip
+        camera_of = {i: r.camera_id for i, r in images.items()}
+        times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
+        _, _, inliers = db.verified_pairs(options.min_num_inliers)
+    return MatchResult(
+        num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=len(pairs) - len(todo),
         num_pairs_processed=len(todo), num_verified=len(inliers),
         median_inliers=float(np.median(inliers)) if len(inliers) else 0.0,
         time_match_s=times[0], time_verify_s=times[1], time_total_s=time.perf_counter() - start,
@@ -150,7 +225,7 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
     try:
         results = executor.map(match_batch, tasks, num_items=-(-len(todo) // size))
         pairs = (r for task in results for r in task.value)
-        for id1, id2, matches, geometry, tm, tv in tqdm(pairs, total=len(todo), desc="match", unit="pair"):
+        for id1, id2, matches, geometry, tm, tv in progress.bar(pairs, total=len(todo), desc="match", unit="pair"):
             batch.append((id1, id2, matches, geometry))
             t_match, t_verify = t_match + tm, t_verify + tv
             if len(batch) >= BATCH_PAIRS:
@@ -162,3 +237,31 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
             flush()  # keep what was finished, also when interrupted
         close_matchers()  # a matcher that ran in this process holds a read connection
     return t_match, t_verify
+
+
+def log_match(recorder: Recorder, db: Database, options: MatchOptions, num_pairs: int, workspace: Path) -> None:
+    """The image graph of paper section 3.1.1 (``graph/images``), the inlier matches of
+    ``record_pairs`` pairs spread from the most to the fewest inliers (``matches/...``), and the
+    stage's text of the tour."""
+    recorder.stage("match")
+    recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+    images = db.read_images()
+    i, j, w = db.verified_pairs(options.min_num_inliers)
+    ids = sorted(images)  # the cluster stage's node order: the same layout
+    node = {image_id: k for k, image_id in enumerate(ids)}
+    names = [images[k].name for k in ids]
+    log_image_graph(recorder, names, np.array([node[int(a)] for a in i], dtype=np.int64),
+                    np.array([node[int(b)] for b in j], dtype=np.int64), w)
+    drawn = 0
+    for k in pair_sample(w, recorder.options.record_pairs).tolist():
+        a, b = int(i[k]), int(j[k])
+        thumb_a, thumb_b = recorder.thumbnail(images[a].name), recorder.thumbnail(images[b].name)
+        geometry = db.read_two_view_geometry(a, b)
+        if thumb_a is None or thumb_b is None or geometry is None:
+            continue
+        m = np.asarray(geometry.inlier_matches, dtype=np.int64)
+        kp_a, kp_b = db.read_keypoints(a), db.read_keypoints(b)
+        log_match_pair(recorder, images[a].name, images[b].name, thumb_a, thumb_b, kp_a[m[:, 0], :2],
+                       kp_b[m[:, 1], :2], TwoViewConfig(int(geometry.config)).name.lower())
+        drawn += 1
+    recorder.tour("match", match_text(len(images), num_pairs, len(w), w, options.min_num_inliers, options, drawn))

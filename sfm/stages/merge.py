@@ -17,18 +17,25 @@ from pathlib import Path
 from backend.memory import return_freed_memory
 from graph.merge_plan import MergePlan
 from backend.geometry import rotation_to_quaternion
+from sfm.core import progress
 from sfm.errors import InputError, NoModelError
 from sfm.io.colmap_model import read_model
-from sfm.io.ledger import Ledger, fingerprint, options_record
-from sfm.io.workspace import DATABASE, MERGE, REPORT, read_json, update_report, write_json_atomic
+from sfm.io.database import Database
+from sfm.io.ledger import Ledger, files_fingerprint, fingerprint, options_record
+from sfm.io.report import model_facts, models_fields, read_report, update_report
+from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
 from sfm.merge.alignment import anchor_from_model, merged_poses
-from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components
+from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components, unjoined_parts
 from sfm.merge.options import MergeOptions
 from sfm.merge.refinement import refine_with_poses
-from sfm.stages.map import failed_clusters_warning, write_models
+from sfm.stages.georegister import georegister_models
+from sfm.stages.map import failed_clusters_warning, registered_names, write_models
 from sfm.stages.payloads import ClusterPayloads
-from sfm.viz.recorder import Recorder, log_model
+from sfm.viz.merging import log_merge
+from sfm.viz.models import log_final_models
+from sfm.viz.recorder import Recorder
+from sfm.viz.tour import merge_text, refine_text
 
 log = logging.getLogger(__name__)
 
@@ -40,14 +47,14 @@ def load_local_models(workspace: Path) -> list[LocalModel]:
         raise InputError(f"no local models in {root}: run cluster and map first")
     out = []
     for cdir in sorted((d for d in root.iterdir() if d.is_dir() and d.name[1:].isdigit()), key=lambda d: int(d.name[1:])):
-        for mdir in sorted((d for d in cdir.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name)):
+        for mdir in numbered_folders(cdir):
             out.append(LocalModel(f"{cdir.name}/{mdir.name}", read_model(mdir)))
     return out
 
 
-def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan]) -> dict:
-    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges, and each merge
-    component's MinST, anchor and layers."""
+def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> dict:
+    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges, each merge
+    component's MinST, anchor and layers, and why the components after the first stayed apart."""
     return {
         "nodes": [{"id": k, "label": m.label, "images": len(m.model.images), "points": len(m.model.points3D)} for k, m in enumerate(models)],
         "edges": [
@@ -62,6 +69,7 @@ def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan]) ->
              "path": {str(k): list(v) for k, v in p.path.items()}, "num_layers": p.num_layers}
             for p in plans
         ],
+        "unjoined": unjoined_parts(models, edges, plans, options),
     }
 
 
@@ -78,41 +86,55 @@ class MergeResult:
 def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOptions,
               recorder: Recorder | None = None) -> MergeResult:
     """Merge ``WORK/clusters/C<k>/<m>`` into ``WORK/sparse/N`` (one model per merge component,
-    largest first) and write ``WORK/merge.json``."""
+    largest first) and write ``WORK/merge.json`` (paper section 3.2, Alg. 2, then Figure 1's
+    re-triangulation and final bundle adjustment)."""
     recorder = recorder or Recorder.disabled()
     workspace = Path(workspace)
     t0 = time.perf_counter()
+    progress.stage("merge")
     ledger = Ledger(workspace)
     opts = {"mapper": options_record(mapper_options), "merge": options_record(options)}
     input_fp = _local_models_fingerprint(workspace)
     if ledger.is_current("merge", opts, input_fp) and (workspace / "sparse" / "0" / "images.bin").exists():
         log.info("merge: %s is current (same options, same local models): skipped", workspace / "sparse")
-        return MergeResult(**ledger.record("merge")["result"])
+        result = MergeResult(**ledger.record("merge")["result"])
+        components = len(read_json(workspace / MERGE)["components"]) if (workspace / MERGE).exists() else 1
+        update_report(workspace, _report_fields(workspace, result.num_local_models, components, result.models,
+                                                [registered_names(Path(m["path"])) for m in result.models]),
+                      {"merge": 0.0, "final_ba": 0.0})
+        if recorder.enabled:  # the recording of this run still shows the merged model
+            recorder.tour("merge", f"## 5. Merge\n\nThe merged models in `sparse/` are current (same options, same "
+                                   f"local models): the merge was not run again; `merge.json` holds its plan.")
+            recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+            finals = [read_model(m["path"]) for m in result.models]
+            with Database(workspace / DATABASE, readonly=True) as db:
+                num_images = db.num_images()
+            log_final_models(recorder, finals, num_images, mapper_options)
+        return result
     if ledger.record("merge"):
         log.info("merge: runs again: %s", ledger.why_stale("merge", opts, input_fp))
     ledger.start("merge", opts, input_fp)
     models = load_local_models(workspace)
     if not models:
         raise NoModelError("no local model to merge: every cluster failed to reconstruct")
-    edges = build_cluster_graph(models, options, seed=mapper_options.seed)
+    with progress.bar_for("model_pairs", "merge: align local models", "pair"):
+        edges = build_cluster_graph(models, options, seed=mapper_options.seed)
     plans = plan_components(models, edges)
-    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans))
-    recorder.stage("merge")
-    components = []
-    for c, plan in enumerate(plans):
+    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options))
+    components, all_sims = [], []
+    for plan in plans:
         sims = anchor_from_model(plan, edges)
-        recorder.log_cluster_graph([len(m.model.images) for m in models], [(a, b) for a, b, _ in plan.edges],
-                                   anchor=plan.anchor, entity=f"graph/clusters/merge{c}" if c else "graph/clusters/merge")
-        for node in plan.clusters if recorder.enabled else ():
-            recorder.set_time("merge_layer", plan.layer[node])
-            moved = models[node].model.copy()
-            moved.transform(sims[node])
-            log_model(recorder, f"merge/{models[node].label.replace('/', '_')}", moved)
+        all_sims.append(sims)
         poses, params = merged_poses(models, plan, sims)
         components.append((plan, poses, params))
+    labels = [m.label for m in models]
+    local_points = sum(len(m.model.points3D) for m in models)
+    if recorder.enabled:
+        log_merge(recorder, labels, [m.model for m in models], edges, plans, all_sims)
+        recorder.tour("merge", merge_text(labels, edges, plans, options))
     t_merge = time.perf_counter() - t0
     num_local, num_edges = len(models), len(edges)
-    del models, edges  # their Python point objects: ~1.7 KB per local point, not needed any more
+    del models, edges  # their Python point objects (one per local point): not needed any more
     return_freed_memory()
 
     recorder.stage("refine")
@@ -121,25 +143,22 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                                min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
     for k, (plan, poses, params) in enumerate(components):
-        final = refine_with_poses(payloads[k], mapper_options, poses, params)  # read here, held by it alone
+        progress.stage("merge", f"final BA of model {k + 1} of {len(components)}")
+        with progress.bar_for("final_ba", f"final BA ({len(poses)} images)", "it"):
+            final = refine_with_poses(payloads[k], mapper_options, poses, params)  # read here, held by it alone
         if len(final.images) >= mapper_options.smallest_model(payloads.sizes[k]):
             finals.append(final)
     finals.sort(key=lambda m: -len(m.images))
-    written = write_models(finals, workspace / "sparse")
-    for k, final in enumerate(finals):
-        log_model(recorder, "world" if k == 0 else f"world/model{k}", final)
+    registrations = georegister_models(finals, workspace / DATABASE, mapper_options)
+    written = write_models(finals, workspace / "sparse", registrations)
+    if recorder.enabled:
+        recorder.tour("refine", refine_text(written, local_points))
+        recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
+        log_final_models(recorder, finals, len(payloads.images), mapper_options)
     t_ba = time.perf_counter() - t0 - t_merge
-    fields = {"num_models": len(finals), "num_local_models": num_local, "merge_components": len(plans), "models": written}
-    if written:
-        fields.update({k: written[0][k] for k in ("registered", "points", "mean_track_length", "mean_reprojection_error")})
-    failed = read_json(workspace / REPORT).get("failed_clusters", []) if (workspace / REPORT).exists() else []
-    fields["warnings"] = [failed_clusters_warning(failed)] if failed else []  # map's still hold, nothing else
-    if len(finals) > 1:
-        msg = (f"{len(finals)} models: the scene splits into {len(finals)} parts that share no aligned cluster pair "
-               f"(sizes {', '.join(str(len(f.images)) for f in finals)})")
-        log.warning("%s", msg)
-        fields["warnings"].append(msg)
-    update_report(workspace, fields, {"T_merge": t_merge, "T_BA": t_ba})
+    fields = _report_fields(workspace, num_local, len(plans), written, [{im.name for im in f.images.values()} for f in finals])
+    fields["georegistration"] = registrations[0] if registrations else None
+    update_report(workspace, fields, {"merge": t_merge, "final_ba": t_ba})
     if not finals:
         raise NoModelError("merging left no model")
     log.info("merge: %d local models -> %d models (largest %d images), merge %.1f s, final BA %.1f s",
@@ -149,8 +168,27 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     return result
 
 
+def _report_fields(workspace: Path, num_local: int, num_components: int, written: list[dict],
+                   final_names: list[set[str]]) -> dict:
+    """The report's merge and final-model keys, with the warnings that still hold."""
+    fields = {"num_local_models": num_local, "merged": True, "merge_components": num_components,
+              **models_fields(written), **model_facts(workspace, final_names)}
+    failed = read_report(workspace)["failed_clusters"]
+    clusters = read_json(workspace / CLUSTERS) if (workspace / CLUSTERS).exists() else {}
+    fields["warnings"] = clusters.get("warnings", []) + ([failed_clusters_warning(failed)] if failed else [])  # still hold
+    if len(written) > 1:
+        msg = (f"{len(written)} models: the scene splits into {len(written)} parts that share no aligned cluster pair "
+               f"(sizes {', '.join(str(m['registered']) for m in written)})")
+        log.warning("%s", msg)
+        fields["warnings"].append(msg)
+    unjoined = read_json(workspace / MERGE).get("unjoined", []) if (workspace / MERGE).exists() else []
+    for part in unjoined:  # why each part the merge could not join stayed apart
+        msg = f"local models {', '.join(part['models'])} join no other: {part['reason']}"
+        log.warning("%s", msg)
+        fields["warnings"].append(msg)
+    return fields
+
+
 def _local_models_fingerprint(workspace: Path) -> str:
     """SHA-256 of every file of ``WORK/clusters/C<k>/<m>/``: what ``merge`` reads."""
-    root = workspace / "clusters"
-    files = sorted(p for p in root.glob("C*/*/*") if p.is_file()) if root.is_dir() else []
-    return fingerprint(*[x for p in files for x in (str(p.relative_to(root)), p.read_bytes())])
+    return files_fingerprint(workspace / "clusters", "C*/*/*")

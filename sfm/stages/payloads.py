@@ -15,20 +15,25 @@ import numpy as np
 from sfm.features.sift import keypoint_scales
 from sfm.io.database import Database
 from sfm.mapper.payload import CameraPrior, MapperInput
+from sfm.stages.extract_writer import given_camera_ids
 
 
 class ClusterPayloads(Sequence[MapperInput]):
     """One :class:`MapperInput` per cluster (``None``: all images), read from the database
-    when indexed: each holds its cluster's keypoints and verified matches, so building them
+    when indexed: each holds its cluster's keypoints (and their colours, when the database
+    has them) and verified matches, so building them
     one at a time keeps memory to the clusters in flight.  Images are named, everything else
     is arrays: a payload needs nothing from the caller's disk.  ``labels``, ``names`` and
-    ``sizes`` need no read."""
+    ``sizes`` need no read.  With ``fixed_intrinsics`` the cameras the ``--intrinsics`` file gave
+    are held fixed (``WORK/extract.json``; in a database made elsewhere, its PINHOLE cameras)."""
 
     def __init__(self, db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
                  min_inliers: int, labels: list[str] | None = None) -> None:
         self.db_path, self.fixed_intrinsics, self.min_inliers = Path(db_path), fixed_intrinsics, min_inliers
         with Database(db_path, readonly=True) as db:
             self.images, self.cams = db.read_images(), db.read_cameras()
+        given = given_camera_ids(self.db_path.parent)
+        self.given = {c for c, cam in self.cams.items() if cam.model == "PINHOLE"} if given is None else given
         by_name = {im.name: iid for iid, im in self.images.items()}
         self.whole = clusters is None
         self.groups = [sorted(self.images)] if clusters is None else [sorted(by_name[n] for n in c) for c in clusters]
@@ -47,10 +52,11 @@ class ClusterPayloads(Sequence[MapperInput]):
             geoms = db.read_two_view_geometries(min_config=2, min_inliers=self.min_inliers,
                                                 image_ids=None if self.whole else ids)
             keypoints = db.read_all_keypoints(ids)
+            colors = db.read_keypoint_colors(ids)
         local = {iid: n for n, iid in enumerate(ids)}
         cameras = {
             c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
-                           cams[c].prior_focal_length, fixed=self.fixed_intrinsics and cams[c].model == "PINHOLE")
+                           cams[c].prior_focal_length, fixed=self.fixed_intrinsics and c in self.given)
             for c in sorted({images[i].camera_id for i in ids})
         }
         pairs = [(local[a], local[b], g.inlier_matches.astype(np.int32), int(g.config))
@@ -60,7 +66,11 @@ class ClusterPayloads(Sequence[MapperInput]):
             image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],
             cameras=cameras, keypoints=[_with_scale(keypoints.pop(i, np.zeros((0, 2)))) for i in ids],
             pairs=pairs, label=self.labels[k],
+            colors=[colors.pop(i, _NO_COLORS) for i in ids] if colors else None,
         )
+
+
+_NO_COLORS = np.zeros((0, 3), np.uint8)  # an image whose keypoint colours are not in the database
 
 
 def _with_scale(keypoints: np.ndarray) -> np.ndarray:

@@ -9,8 +9,8 @@ opened, every stage run, both closed.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,7 +19,9 @@ from sfm.core.options import OptionError, options_from, unknown_names
 from sfm.execution.options import ExecutionOptions, make_executor
 from sfm.execution.process_pool import start_pool_server
 from sfm.features.options import ExtractOptions
-from sfm.io.workspace import RECORDING, REPORT, read_json, update_report
+from sfm.errors import InputError
+from sfm.io.report import finish_run, read_report, start_run, update_report
+from sfm.io.workspace import RECORDING, WorkspaceLock
 from sfm.mapper.options import MapperOptions
 from sfm.matching.options import MatchOptions
 from sfm.merge.options import MergeOptions
@@ -58,33 +60,41 @@ class ReconstructOptions:
 
 def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOptions,
                     executor=None, recorder: Recorder | None = None) -> dict:
-    """Every stage in order on ``executor`` (default: local processes); returns the report."""
+    """Every stage in order on ``executor`` (default: local processes), the pipeline of the
+    paper's Figure 1; returns the report."""
     workspace = Path(workspace)
     recorder = recorder or Recorder.disabled()
     if images is not None:
-        t0 = time.perf_counter()
-        run_extract(Path(images), workspace, options.extract, executor)
-        t1 = time.perf_counter()
-        run_match(workspace, options.match, executor)
-        update_report(workspace, {"image_dir": str(images)}, {"T_feat": t1 - t0, "T_match": time.perf_counter() - t1})
-    t0 = time.perf_counter()
-    cluster_result = run_cluster(workspace, options.cluster, recorder)
-    update_report(workspace, {"num_clusters": cluster_result.num_clusters}, {"T_GC": time.perf_counter() - t0})
+        run_extract(Path(images), workspace, options.extract, executor, recorder)
+        run_match(workspace, options.match, executor, recorder)
+    run_cluster(workspace, options.cluster, recorder)
     map_result = run_map(workspace, options.mapper, recorder, executor)
     if map_result.direct:  # one cluster: its models are the final ones, nothing to merge
-        update_report(workspace, {}, {"T_merge": 0.0, "T_BA": 0.0})
+        update_report(workspace, {}, {"merge": 0.0, "final_ba": 0.0})
     else:
         run_merge(workspace, options.mapper, options.merge, recorder)
-    return read_json(workspace / REPORT)
+    return read_report(workspace)
 
 
-def reconstruct(images: Path | None, workspace: Path, options: ReconstructOptions) -> dict:
-    """The whole run: opens the executor and the recording (``WORK/recording.rrd``) that
-    ``options`` ask for, runs every stage, closes both; returns the report."""
+def reconstruct(images: Path | None, workspace: Path, options: ReconstructOptions, command: str | None = None) -> dict:
+    """The whole run: takes the workspace (``WORK/run.lock``), opens the executor and the
+    recording (``WORK/recording.rrd``) that ``options`` ask for, runs every stage, closes both;
+    returns the report (``command``: the command line it records)."""
     workspace = Path(workspace)
-    if options.execution.executor == "local":
-        start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
-    rec = options.recording
-    recorder = Recorder(workspace / RECORDING, workspace, spawn=rec.spawn) if rec.recording else Recorder.disabled()
-    with recorder, make_executor(options.execution) as executor:
-        return run_reconstruct(workspace, images, options, executor, recorder)
+    if workspace.exists() and not workspace.is_dir():
+        raise InputError(f"--workspace: {workspace} is a file, not a folder")
+    workspace.mkdir(parents=True, exist_ok=True)
+    with WorkspaceLock(workspace, command or "sfm.reconstruct"):
+        if options.execution.executor == "local":
+            start_pool_server()  # the worker processes' imports overlap the Rerun SDK's
+        start_run(workspace, command, fresh=True, image_dir=str(Path(images).resolve()) if images else None)
+        rec = options.recording
+        recorder = Recorder(workspace / RECORDING, workspace, rec.spawn, rec) if rec.recording else Recorder.disabled()
+        try:
+            with recorder, make_executor(options.execution) as executor:
+                run_reconstruct(workspace, images, options, executor, recorder)
+        except BaseException:
+            with contextlib.suppress(Exception):  # the error that stopped the run is the one to report
+                finish_run(workspace, "failed")
+            raise
+        return finish_run(workspace, "finished")

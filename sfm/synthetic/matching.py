@@ -129,9 +129,13 @@ def simulate_matching(scene: SyntheticScene, opts: SynthOptions) -> list[Synthet
     return pairs
 
 
-def write_database(scene: SyntheticScene, pairs: list[SyntheticPair], path: Path) -> None:
+def write_database(scene: SyntheticScene, pairs: list[SyntheticPair], path: Path,
+                   camera_model: str = "SIMPLE_RADIAL") -> None:
     """Keypoints, raw matches and verified two-view geometries (config CALIBRATED, E and F,
-    relative pose) into a COLMAP-schema database; one transaction, so it is all or nothing."""
+    relative pose) into a COLMAP-schema database; one transaction, so it is all or nothing.
+    The images share one camera of ``camera_model`` with the scene's focal length, principal
+    point at the centre and no distortion (what extraction gives a camera with a focal prior)."""
+    from backend.camera_models import default_params
     from sfm.io.pixel_convention import params_to_colmap
     from sfm.io.database import Database
     from sfm.io.database_schema import TwoViewConfig, TwoViewGeometry
@@ -141,7 +145,8 @@ def write_database(scene: SyntheticScene, pairs: list[SyntheticPair], path: Path
     K_colmap[:2, 2] = params_to_colmap("PINHOLE", [1, 1, K_colmap[0, 2], K_colmap[1, 2]])[2:]
     K_inv = np.linalg.inv(K_colmap)
     with Database(path) as db, db.transaction():
-        cam = db.add_camera("SIMPLE_RADIAL", scene.width, scene.height, [scene.focal, (scene.width - 1) / 2, (scene.height - 1) / 2, 0.0], prior_focal_length=True)
+        cam = db.add_camera(camera_model, scene.width, scene.height,
+                            default_params(camera_model, scene.width, scene.height, scene.focal), prior_focal_length=True)
         for i, name in enumerate(scene.names):
             db.add_image(name, cam, image_id=i + 1)
             db.write_keypoints(i + 1, scene.keypoints[i].astype(np.float32))

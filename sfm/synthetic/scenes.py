@@ -226,6 +226,26 @@ def make_scene(opts: SynthOptions) -> SyntheticScene:
     return SyntheticScene(opts.width, opts.height, focal, names, rotations, translations, points, obs_i, obs_p, obs_kp, keypoints)
 
 
+def with_lens(scene: SyntheticScene, model: str, params) -> SyntheticScene:
+    """The scene seen through a lens: every keypoint moves from where the pinhole camera ``K``
+    puts it to where the COLMAP camera ``model`` with ``params`` does (``params`` must hold the
+    scene's focal length and principal point; the distortion is the test's).  Poses, points and
+    observations are unchanged."""
+    from dataclasses import replace
+
+    from backend.camera_models import calibration_matrix, project
+
+    K = calibration_matrix(model, params)
+    if not np.allclose(K, scene.K):
+        raise ValueError("with_lens: the lens must keep the scene's focal length and principal point")
+    K_inv = np.linalg.inv(scene.K)
+    moved = []
+    for kps in scene.keypoints:
+        rays = np.column_stack([kps, np.ones(len(kps))]) @ K_inv.T
+        moved.append(project(model, params, rays))
+    return replace(scene, keypoints=moved)
+
+
 # ---------------------------------------------------------------------------------- output
 def write_gt_table(scene: SyntheticScene, path: Path, image_ids: list[int] | None = None) -> None:
     """``IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ`` (the shared GT format)."""

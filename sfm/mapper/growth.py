@@ -1,0 +1,147 @@
+"""How a local model grew, as data: what the recording shows of incremental SfM.
+
+Clusters run in worker processes (or on other machines) that cannot write the run's recording,
+so :func:`sfm.mapper.incremental.reconstruct_incremental` fills a :class:`Growth` instead, which
+travels back with the models and is logged by the main process (``sfm.viz.mapping``): a
+cluster run in the main process and one run by a worker look the same in the recording.
+
+A :class:`Growth` is bounded: per registration the new image's pose, the RMS reprojection error
+of the last bundle adjustment and at most ``max_points`` points, a fixed sample of the model's
+tracks (the tracks with the smallest hash of their id among the triangulated ones, so a point,
+once shown, stays in the sample while it exists); the poses of all registered images (which
+every global bundle adjustment moves) only while the model has at most
+:data:`ALL_POSES_UP_TO` images and then whenever it has grown by :data:`ALL_POSES_GROWTH`, and
+after the final refinement: O(n log n) poses for a model of n images, not O(n^2).
+Per model it also keeps, for each image the model left out, why.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from backend.camera_models import calibration_matrix
+from sfm.mapper.output import mean_colors
+from sfm.mapper.state import MapperState
+
+
+ALL_POSES_UP_TO = 10  # images: young models move a lot (as EARLY_GLOBAL_BA_IMAGES)
+ALL_POSES_GROWTH = 1.2  # then every 20% of growth
+
+
+@dataclass
+class GrowthStep:
+    """The model after one registration: ``num_registered`` images, ``new`` the images
+    registered by it (two for the initial pair; none for the final refinement), ``posed`` the
+    local indices of the images whose ``cam_from_world`` poses this step holds (the new ones, or
+    all), ``ba_rms_px`` the last bundle adjustment's RMS reprojection error, ``points`` /
+    ``colors`` the sample of points."""
+
+    num_registered: int
+    new: list[int]
+    posed: np.ndarray
+    rotations: np.ndarray  # (n, 3, 3) float32
+    translations: np.ndarray  # (n, 3) float32
+    ba_rms_px: float
+    points: np.ndarray  # (P, 3) float32
+    colors: np.ndarray  # (P, 3) uint8
+
+
+@dataclass
+class ModelGrowth:
+    """One model's attempt: its steps, whether it was kept (``rank`` among the kept models,
+    largest first, as ``clusters/C<k>/<rank>`` is written; -1: too small, dropped) and, for each
+    image of the cluster it does not hold, why (image name -> reason)."""
+
+    steps: list[GrowthStep] = field(default_factory=list)
+    rank: int = -1
+    size: int = 0
+    left_out: dict[str, str] = field(default_factory=dict)
+    registered: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # at the last step
+    all_posed_at: int = 0  # images when the poses of all were last kept
+
+
+@dataclass
+class Growth:
+    """Every model attempt of one cluster, with the cluster's image names and cameras (each
+    image's calibration matrix and size, as the last finished model refined them)."""
+
+    label: str
+    names: list[str]
+    max_points: int
+    models: list[ModelGrowth] = field(default_factory=list)
+    K: np.ndarray | None = None  # (n, 3, 3): each image's calibration, set when a model closes
+    sizes: np.ndarray | None = None  # (n, 2) width, height
+    _track_rgb: np.ndarray | None = None
+    _priority: np.ndarray | None = None
+
+    def record(self, state: MapperState, ba_rms_px: float, new: list[int]) -> None:
+        """A step of the current model (a new model starts when the previous one was closed)."""
+        if not self.models or self.models[-1].size:
+            self.models.append(ModelGrowth())
+        if self._track_rgb is None:
+            rows = np.arange(len(state.obs_image))  # grouped by track
+            self._track_rgb = mean_colors(state, rows, state.starts)
+            ids = np.arange(state.num_tracks, dtype=np.uint64)
+            self._priority = (ids * np.uint64(2654435761)) & np.uint64(0xFFFFFFFF)  # Knuth's hash
+        valid = np.flatnonzero(state.track_valid)
+        if len(valid) > self.max_points:
+            valid = valid[np.argpartition(self._priority[valid], self.max_points - 1)[: self.max_points]]
+            valid.sort()
+        reg = np.flatnonzero(state.registered)
+        model = self.models[-1]
+        n = len(reg)
+        if not new or n <= ALL_POSES_UP_TO or n >= ALL_POSES_GROWTH * model.all_posed_at:
+            model.all_posed_at = n
+            posed = reg
+        else:
+            posed = np.array(sorted(new), dtype=np.int64)
+        model.registered = reg
+        self.models[-1].steps.append(GrowthStep(
+            num_registered=n, new=[int(i) for i in new], posed=posed, rotations=state.R[posed].astype(np.float32),
+            translations=state.t[posed].astype(np.float32), ba_rms_px=float(ba_rms_px),
+            points=state.track_xyz[valid].astype(np.float32), colors=self._track_rgb[valid]))
+
+    def close(self, state: MapperState) -> None:
+        """The current model is finished: note why each image outside it is left out."""
+        if not self.models or self.models[-1].size:
+            return
+        model = self.models[-1]
+        model.size = int(state.num_registered)
+        self._cameras(state)
+        for i in np.flatnonzero(~state.registered):
+            model.left_out[self.names[i]] = left_out_reason(state, int(i))
+
+    def finish(self, min_size: int) -> None:
+        """Rank the kept models as :func:`reconstruct_incremental` sorts them (largest first,
+        stable); attempts below ``min_size`` images stay at rank -1."""
+        kept = [k for k, m in enumerate(self.models) if m.size >= min_size]
+        for rank, k in enumerate(sorted(kept, key=lambda k: -self.models[k].size)):
+            self.models[k].rank = rank
+
+    def _cameras(self, state: MapperState) -> None:
+        n = len(self.names)
+        if self.K is None:
+            self.K, self.sizes = np.zeros((n, 3, 3)), np.zeros((n, 2), np.int64)
+        for i in range(n):
+            c = state.cam_index[i]
+            prior = state.priors[c]
+            self.K[i] = calibration_matrix(prior.model, state.params[c])
+            self.sizes[i] = prior.width, prior.height
+
+
+def left_out_reason(state: MapperState, i: int) -> str:
+    """Why image ``i`` is not in the model just finished, in words."""
+    opts = state.opts
+    if state.used[i]:
+        return "registered in an earlier model"
+    if len(state.image_rows[i]) == 0:
+        return f"no pair with {opts.min_num_matches}+ verified inliers inside the cluster"
+    visible = len(state.visible_points(i)[0])
+    if state.failed[i]:
+        return (f"PnP RANSAC failed {state.failed[i]} time(s) (last with {state.fail_visible[i]} model points "
+                f"in view; needs {opts.abs_pose_min_num_inliers} inliers, {opts.abs_pose_min_inlier_ratio:.0%} of them)")
+    if visible < opts.abs_pose_min_num_inliers:
+        return f"sees {visible} points of the model; registration needs {opts.abs_pose_min_num_inliers}"
+    return "dropped: its camera's intrinsics became degenerate, or the model stopped before reaching it"

@@ -1,0 +1,95 @@
+"""New images merged into a finished model held as the anchor (``graphsfm extend``; paper
+section 3.2, Alg. 2 with the anchor given).
+
+The finished model is one more node of the cluster graph, next to the local models of the new
+images' clusters; the cluster graph's edges are the similarities and MSDs of section 3.2.1-3.2.2
+(:func:`sfm.merge.cluster_graph.build_cluster_graph`), the MinST is Alg. 2's line 2, and the
+tree is rooted at the finished model instead of a minimum-height-tree centre
+(``graph.merge_plan.plan_merges(anchor=...)``), so the finished model never moves: every new
+model is mapped into its frame along its tree path, and an image it already registered keeps
+its pose there.  Local models that no edge path joins to it stay models of their own.
+
+The merged model is then re-triangulated with every pose, and bundle-adjusted in the region of
+the new images only (``BundleAdjuster.region``: the new images and the old ones that share
+points with them free, the images beyond held), the points outside that region re-estimated
+with their cameras held; ``full_ba`` runs the global BA of the ``merge`` stage instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from backend.memory import return_freed_memory
+from graph.merge_plan import MergePlan, plan_merges
+from sfm.core.model import Reconstruction
+from sfm.mapper.bundle_adjuster import BundleAdjuster
+from sfm.mapper.options import MapperOptions
+from sfm.mapper.output import to_reconstruction
+from sfm.mapper.payload import MapperInput
+from sfm.mapper.state import MapperState
+from sfm.merge.alignment import anchor_from_model, merged_poses
+from sfm.merge.cluster_graph import LocalModel, build_cluster_graph
+from sfm.merge.options import MergeOptions
+from sfm.merge.refinement import alternate_until_converged, refine_with_poses
+
+ANCHOR = 0  # the finished model is node 0 of the extension's cluster graph
+
+
+def plan_extension(nodes: list[LocalModel], options: MergeOptions, seed: int = 0) -> tuple[dict, list[MergePlan]]:
+    """The cluster graph of the finished model (``nodes[0]``) and the new local models
+    (section 3.2.1-3.2.2, Alg. 2, line 1), and its merge plans: Kruskal MinST (line 2), the
+    component of the finished model rooted at it (Alg. 2 with the anchor given), every other
+    component planned as in the ``merge`` stage (lines 3-12).  The anchor's plan comes first."""
+    edges = build_cluster_graph(nodes, options, seed=seed)
+    sizes = {k: len(m.model.images) for k, m in enumerate(nodes)}
+    weights = {(u, v): e["msd"] for (u, v), e in edges.items() if e["used"]}
+    return edges, plan_merges(list(range(len(nodes))), sizes, weights, anchor=ANCHOR)
+
+
+def extended_poses(nodes: list[LocalModel], plan: MergePlan, edges: dict):
+    """Poses (by image name) and camera parameters (by camera id) of the anchor's component in
+    the anchor's frame (Alg. 2, lines 6 and 10, composed along each tree path): the anchor's own
+    images and cameras keep theirs exactly; each new image takes the pose of the model nearest
+    the anchor that registered it, each new camera the parameters of the model that registered
+    most of its images."""
+    sims = anchor_from_model(plan, edges)
+    poses, params = merged_poses(nodes, plan, sims)
+    anchor = nodes[plan.anchor].model
+    for cam_id, cam in anchor.cameras.items():
+        params[cam_id] = cam.params.copy()
+    return poses, params, sims
+
+
+def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],
+                     camera_params: dict[int, np.ndarray], new_names: set[str], full_ba: bool = False) -> Reconstruction:
+    """The extended model's refinement (Figure 1's re-triangulation and BA after merging, with
+    a cost that grows with the new part): every track triangulated with the merged poses, a BA
+    of the new images' region (``BundleAdjuster.region``) with the rest held and filtering,
+    alternating with re-triangulation until it converges (``alternate_until_converged``, as the
+    merge's refinement); the points outside the region are
+    re-estimated with their cameras held.  ``full_ba``: :func:`refine_with_poses`, the global
+    BA of the ``merge`` stage."""
+    if full_ba:
+        return refine_with_poses(payload, opts, poses, camera_params)
+    state = MapperState(payload, opts)
+    state.camera_filter = False  # nothing would register the dropped images again
+    state.release_pairs()
+    del payload
+    return_freed_memory()
+    state.set_camera_params(camera_params)
+    state.set_poses(poses)
+    new = np.array([i for i, n in enumerate(state.names) if n in new_names], dtype=np.int64)
+    adjuster = BundleAdjuster(state)
+    state.retriangulate()
+    region = np.zeros(0, np.int64)
+
+    def adjust_region() -> None:
+        nonlocal region
+        region = adjuster.region(new, loss_scale=opts.loss_scale)
+
+    alternate_until_converged(state, adjust_region)
+    outside = np.setdiff1d(np.flatnonzero(state.track_valid), region)
+    if len(outside):
+        adjuster.refine_points(outside)
+        state.filter_observations(outside)
+    return to_reconstruction(state)
