@@ -33,10 +33,9 @@ class MapperOptions(Options):
     global_ba_ratio: float = option(
         1.2, "A global BA runs when the model has grown by this factor (OpenSfM: 1.2).", above=1)
     intrinsics_refinement: str = option(
-        "auto", "What global BAs refine of cameras whose intrinsics were not given: nothing, the focal length, "
-        "focal length and distortion (COLMAP's default), all (principal point too), or auto: focal length and "
-        "distortion, and in a model's final BAs the principal point of each camera whose shift from the image "
-        "centre the model determines (significant at 3 sigma, correlation with the other intrinsics below 0.9).",
+        "focal_radial", "What global BAs refine of cameras not given: none, focal, focal_radial (COLMAP's default), "
+        "all (principal point too), or auto: all in a model's final BAs where its covariance determines the "
+        "principal point (sfm.mapper.principal_point).",
         choices=("none", "focal", "focal_radial", "all", "auto"))
     refine_given_intrinsics: bool = option(
         False, "Also refine intrinsics given with --intrinsics (held fixed otherwise).")

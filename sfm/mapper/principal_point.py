@@ -21,6 +21,9 @@ photogrammetric self-calibration for additional parameters, passes for the camer
 
 A camera that fails keeps the nominal principal point and the final BA runs again without it.
 Nothing here depends on the scene: the test reads only the camera's estimate and its covariance.
+That is also its limit: the covariance knows only the modelled parameters, so where lens error the
+camera model lacks lets a shifted principal point fit the photos as well as the centred one, the
+test can still call the shift significant.  This is why "auto" is an option, not the default.
 """
 
 from __future__ import annotations
