@@ -78,7 +78,8 @@ class BAOptions:
         (so no new local minima), yet a 50 px outlier pulls 50x less than under least squares.
         "none" is COLMAP's global-BA default, right when outliers were already filtered.
     refine_intrinsics: "none" | "focal" | "focal_radial" (focal + the model's distortion, the
-        default, as COLMAP) | "all" (principal point too).
+        default, as COLMAP) | "all" (principal point too); or one of these per camera group
+        (a sequence as long as ``BAProblem.camera_models``).
     gauge_pose: image whose pose anchors the gauge when ``BAProblem.fixed_poses`` is empty (None: the
         first image with observations). Gauge: with no fixed pose, a prior on that pose plus a
         prior on the distance from its centre to the farthest camera centre (the scale); with
@@ -110,7 +111,7 @@ class BAOptions:
 
     loss: str = "huber"
     loss_scale: float = 1.0
-    refine_intrinsics: str = "focal_radial"
+    refine_intrinsics: str | tuple[str, ...] = "focal_radial"
     gauge_pose: int | None = None
     max_iterations: int = 100
     relative_tolerance: float = 1e-5

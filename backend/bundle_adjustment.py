@@ -17,6 +17,11 @@ calibration of each group is ONE variable shared by its images' factors
 single-focal models refining "focal"/"focal_radial", ``Cal3DS2`` otherwise. Components of the
 calibration that must not move are held by a tight prior (sigma 1e-7 relative) and returned
 exactly as given; fx = fy of single-focal models under "all" is tied by a one-row factor.
+The level of refinement may differ between groups (``BAOptions.refine_intrinsics`` per group; a
+group at "none" among refined ones is a calibration variable held whole by its prior).
+:func:`calibration_step` builds the same graph and, without optimising, gives each refined
+group's Gauss-Newton step and covariance (the poses and points marginalised out): what a BA would
+do to the calibration and how well the data determine it.
 (GTSAM 4.3 gotcha: Python's ``Cal3Bundler.uncalibrate`` binds Cal3f's and skips distortion;
 the C++ factors and ``PinholeCameraCal3Bundler.project`` apply k1 r2 + k2 r2² correctly.)
 Factors are added in a Python loop (GTSAM's Python API has no bulk constructor for them); the
@@ -28,14 +33,15 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import K, L, X
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.camera_models import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2
-from backend.gtsam_solver import gauss_newton_or_lm, lm_optimizer, optimize_or_keep, robust_noise
+from backend.gtsam_solver import AUTO_METIS_OBSERVATIONS, gauss_newton_or_lm, lm_optimizer, optimize_or_keep, robust_noise
 
 logger = logging.getLogger(__name__)
 Array = np.ndarray
@@ -70,9 +76,14 @@ def rms(err: Array) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
 
 
-def _free_ds2(model: str, refine: str) -> list[int]:
+REFINE_LEVELS = ("none", "focal", "focal_radial", "all")
+
+
+def free_ds2(model: str, refine: str) -> list[int]:
     """Cal3DS2 components refined for ``model`` under ``refine`` (skew never)."""
     levels = {"focal": 0, "focal_radial": 1, "all": 2}
+    if refine == "none":
+        return []
     if refine not in levels:
         raise ValueError(f"unknown refine_intrinsics {refine!r}")
     free = [0, 1] + (_EXTRA_DS2[model] if levels[refine] >= 1 else [])
@@ -86,7 +97,7 @@ def _uses_bundler(model: str, refine: str) -> bool:
 
 def _add_calibration(graph, values, key: int, model: str, params: Array, refine: str) -> None:
     """Insert one group's calibration variable, with priors holding what is not refined."""
-    ds2, free = ds2_from_params(model, params), _free_ds2(model, refine)
+    ds2, free = ds2_from_params(model, params), free_ds2(model, refine)
     if _uses_bundler(model, refine):
         values.insert(key, gtsam.Cal3Bundler(ds2[0], ds2[5], ds2[6], ds2[3], ds2[4]))
         held, sigmas = [j not in free for j in (0, 5, 6)], np.array([ds2[0], 1.0, 1.0])
@@ -110,6 +121,17 @@ def _add_calibration(graph, values, key: int, model: str, params: Array, refine:
         graph.add(prior(key, cal, gtsam.noiseModel.Diagonal.Precisions(precisions)))
 
 
+def group_levels(refine: str | Sequence[str], num_groups: int) -> list[str]:
+    """``BAOptions.refine_intrinsics`` as one level per camera group."""
+    levels = [refine] * num_groups if isinstance(refine, str) else list(refine)
+    if len(levels) != num_groups:
+        raise ValueError(f"refine_intrinsics has {len(levels)} levels for {num_groups} camera groups")
+    bad = [lv for lv in levels if lv not in REFINE_LEVELS]
+    if bad:
+        raise ValueError(f"unknown refine_intrinsics {bad[0]!r}; use one of {', '.join(REFINE_LEVELS)}")
+    return levels
+
+
 def _calibration_params(values, key: int, cameras: tuple, group: int, refine: str) -> Array:
     """The group's refined parameters; held ones exactly as given."""
     model = cameras[0][group]
@@ -119,7 +141,7 @@ def _calibration_params(values, key: int, cameras: tuple, group: int, refine: st
         new = np.array([cal.fx(), cal.fx(), 0.0, cal.px(), cal.py(), cal.k1(), cal.k2(), 0.0, 0.0])
     else:
         new = values.atCal3DS2(key).vector()
-    free = _free_ds2(model, refine)
+    free = free_ds2(model, refine)
     ds2[free] = new[free]
     return params_from_ds2(model, ds2)
 
@@ -138,17 +160,18 @@ def _noise_per_observation(options: BAOptions, obs_sigma: Array | None, num_obs:
     return [models[k] for k in index.ravel().tolist()]
 
 
-def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, refine: str,
+def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, levels: list[str],
                             constant: dict | None = None) -> None:  # fmt: skip
     """One projection factor per observation (``noise[m]`` its noise model); calibration
-    variables when intrinsics move.  ``constant`` (only with ``refine == "none"``): image ->
+    variables when intrinsics move (``levels``: per group).  ``constant`` (only when every
+    level is "none"): image ->
     Pose3 of the images whose poses are constants, not variables: their observations are
     factors on the point alone."""
     camera_models, camera_params, image_camera = cameras
     obs_image, obs_point, obs_xy = obs
     obs_camera = image_camera[obs_image].tolist()
     rows = zip(obs_image.tolist(), obs_point.tolist(), obs_camera, obs_xy, noise)
-    if refine == "none":  # no calibration variables: projection factors with constant Cal3DS2
+    if all(levels[g] == "none" for g in groups):  # no calibration variables: constant Cal3DS2
         cals = {
             g: gtsam.Cal3DS2(*ds2_from_params(camera_models[g], camera_params[g])) for g in groups
         }
@@ -162,8 +185,8 @@ def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, re
         return
     factor = {}  # one calibration variable per group, shared by its observations
     for g in groups:
-        _add_calibration(graph, values, K(g), camera_models[g], camera_params[g], refine)
-        bundler = _uses_bundler(camera_models[g], refine)
+        _add_calibration(graph, values, K(g), camera_models[g], camera_params[g], levels[g])
+        bundler = _uses_bundler(camera_models[g], levels[g])
         factor[g] = (
             gtsam.GeneralSFMFactor2Cal3Bundler if bundler else gtsam.GeneralSFMFactor2Cal3DS2
         )
@@ -194,6 +217,53 @@ def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions, 
         graph.add(gtsam.RangeFactorPose3(X(anchors[0]), X(far), d, range_noise))
 
 
+@dataclass
+class _Graph:
+    """The factor graph of a problem and what :func:`bundle_adjust` needs of its building."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    levels: list[str]
+    refined: list[int]
+    observed: Array
+    seen_points: Array
+    cameras: tuple
+
+
+def _build(problem: BAProblem, options: BAOptions) -> _Graph:
+    """The graph and initial values of ``problem`` under ``options`` (module docstring)."""
+    camera_models, camera_params, image_camera = problem.camera_models, problem.camera_params, problem.image_camera
+    obs_image, obs_point, obs_xy, obs_sigma = problem.obs_image, problem.obs_point, problem.obs_xy, problem.obs_sigma
+    if len(obs_image) == 0:
+        raise ValueError("bundle adjustment needs at least one observation")
+    rotations, translations = np.asarray(problem.rotations, float), np.asarray(problem.translations, float)
+    points, obs_xy = np.asarray(problem.points, float), np.asarray(obs_xy, float)
+    obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
+    image_camera = np.asarray(image_camera, np.int64)
+    levels = group_levels(options.refine_intrinsics, len(camera_models))
+    cameras, obs = (camera_models, camera_params, image_camera), (obs_image, obs_point, obs_xy)
+    observed, seen_points = np.unique(obs_image), np.unique(obs_point)
+    groups = sorted(set(image_camera[observed].tolist()))
+    refined = [g for g in groups if levels[g] != "none"]
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    poses = [pose3_from_cam_from_world(r, t) for r, t in zip(rotations, translations)]
+    # Held poses are constants when two or more are observed and the intrinsics are held too
+    # (a local BA): they fix the gauge, and the reduced camera system holds the free poses
+    # alone.  Otherwise they are variables under tight priors (_add_gauge).
+    held = sorted(set(problem.fixed_poses) & set(observed.tolist()))
+    constant = {i: poses[i] for i in held} if not refined and len(held) >= 2 else {}
+    for i in observed.tolist():
+        if i not in constant:
+            values.insert(X(i), poses[i])
+    for j in seen_points.tolist():
+        values.insertPoint3(L(j), points[j])
+    noise = _noise_per_observation(options, obs_sigma, len(obs_image))
+    _add_projection_factors(graph, values, cameras, obs, groups, noise, levels, constant)
+    if not constant:
+        _add_gauge(graph, values, poses, observed, options, held)
+    return _Graph(graph, values, levels, refined, observed, seen_points, cameras)
+
+
 def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BAResult:
     """Jointly refine poses, points and (optionally) per-group intrinsics (robust LM, GTSAM): the
     bundle adjustments of local SfM (paper section 3.2) and the final one (Figure 1).
@@ -202,35 +272,13 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     poses in ``problem.fixed_poses``.  Errors reported are in pixels.
     """
     start = time.perf_counter()
-    camera_models, camera_params, image_camera = problem.camera_models, problem.camera_params, problem.image_camera
-    rotations, translations, points = problem.rotations, problem.translations, problem.points
-    obs_image, obs_point, obs_xy, obs_sigma = problem.obs_image, problem.obs_point, problem.obs_xy, problem.obs_sigma
-    if len(obs_image) == 0:
-        raise ValueError("bundle adjustment needs at least one observation")
-    rotations, translations = np.asarray(rotations, float), np.asarray(translations, float)
-    points, obs_xy = np.asarray(points, float), np.asarray(obs_xy, float)
-    obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
-    image_camera, refine = np.asarray(image_camera, np.int64), options.refine_intrinsics
-    cameras, obs = (camera_models, camera_params, image_camera), (obs_image, obs_point, obs_xy)
+    built = _build(problem, options)
+    graph, values, levels, refined = built.graph, built.values, built.levels, built.refined
+    observed, seen_points, cameras = built.observed, built.seen_points, built.cameras
+    rotations, translations = np.asarray(problem.rotations, float), np.asarray(problem.translations, float)
+    points, camera_params = np.asarray(problem.points, float), problem.camera_params
+    obs_image = np.asarray(problem.obs_image, np.int64)
     initial_err = problem.reprojection_errors()
-    observed, seen_points = np.unique(obs_image), np.unique(obs_point)
-    groups = sorted(set(image_camera[observed].tolist()))
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    poses = [pose3_from_cam_from_world(r, t) for r, t in zip(rotations, translations)]
-    # Held poses are constants when two or more are observed and the intrinsics are held too
-    # (a local BA): they fix the gauge, and the reduced camera system holds the free poses
-    # alone.  Otherwise they are variables under tight priors (_add_gauge).
-    held = sorted(set(problem.fixed_poses) & set(observed.tolist()))
-    constant = {i: poses[i] for i in held} if refine == "none" and len(held) >= 2 else {}
-    for i in observed.tolist():
-        if i not in constant:
-            values.insert(X(i), poses[i])
-    for j in seen_points.tolist():
-        values.insertPoint3(L(j), points[j])
-    noise = _noise_per_observation(options, obs_sigma, len(obs_image))
-    _add_projection_factors(graph, values, cameras, obs, groups, noise, refine, constant)
-    if not constant:
-        _add_gauge(graph, values, poses, observed, options, held)
     history: list[tuple[float, float]] = []
     built_s = time.perf_counter() - start
     logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
@@ -251,8 +299,8 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     for j in seen_points.tolist():
         pts_out[j] = result.atPoint3(L(j))
     params_out = [np.asarray(p, float).copy() for p in camera_params]
-    for g in groups if refine != "none" else []:
-        params_out[g] = _calibration_params(result, K(g), cameras, g, refine)
+    for g in refined:
+        params_out[g] = _calibration_params(result, K(g), cameras, g, levels[g])
     final_err = replace(problem, camera_params=params_out, rotations=rot_out, translations=trans_out,
                         points=pts_out).reprojection_errors()
     res = BAResult(
@@ -274,3 +322,73 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     level = logging.INFO if options.verbose else logging.DEBUG
     logger.log(level, "BA on %d observations: RMS %s, %.2f s", len(obs_image), summary, res.time_s)
     return res
+
+
+def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array, Array] | None]:
+    """Per camera group, ``(step, covariance)`` of its Cal3DS2 vector [fx, fy, s, u0, v0, k1, k2,
+    p1, p2] at the problem's values, without optimising: the graph of :func:`bundle_adjust`
+    linearised there (the robust loss weighs each observation by its current error), every point
+    and pose eliminated (the Schur complement onto the calibration variables, exact), then over
+    the free components (the held ones conditioned on, their rows zero) the Gauss-Newton step
+    ``Lambda^-1 eta`` and the covariance ``Lambda^-1`` times the a-posteriori variance factor
+    ``s0^2 = sum of squared whitened residuals / redundancy`` (the photogrammetric estimate of the
+    observations' variance, of which their sigmas are only relative weights).  At a BA's optimum
+    with some components held, the step is where freeing them would move them to first order,
+    and the covariance how well the data determine them.  A Cal3Bundler group's (f, k1, k2)
+    fill [fx and fy, k1, k2].  None for groups not refined or without observations, and for
+    every group when the system is singular."""
+    built = _build(problem, options)
+    graph, values, levels, refined, cameras = built.graph, built.values, built.levels, built.refined, built.cameras
+    out: list[tuple[Array, Array] | None] = [None] * len(problem.camera_models)
+    if not refined:
+        return out
+    keys = [K(g) for g in refined]
+    last = set(keys)
+    others = [k for k in values.keys() if k not in last]
+    try:
+        linear = graph.linearize(values)
+        if graph.size() > AUTO_METIS_OBSERVATIONS:  # the BA's own choice (backend.gtsam_solver)
+            metis = gtsam.Ordering.MetisNonlinearFactorGraph(graph)
+            order = [k for k in (metis.at(i) for i in range(metis.size())) if k not in last]
+        else:  # points, then poses: the reduced camera system
+            order = sorted(others, key=lambda k: gtsam.Symbol(k).chr() != ord("l"))
+        _, rest = linear.eliminatePartialMultifrontal(gtsam.Ordering(order))
+        information, eta = rest.hessian(gtsam.Ordering(keys))
+    except RuntimeError as exc:
+        logger.debug("calibration step: %s", exc)
+        return out
+    sizes = [3 if _uses_bundler(cameras[0][g], levels[g]) else 9 for g in refined]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    free = np.concatenate([o + np.array(_free_local(cameras[0][g], levels[g]), int)
+                           for g, o in zip(refined, offsets[:-1])])
+    num_poses = sum(1 for k in others if gtsam.Symbol(k).chr() == ord("x"))
+    redundancy = 2 * len(problem.obs_image) - (6 * num_poses + 3 * (len(others) - num_poses) + len(free) - 7)
+    try:
+        inverse = np.linalg.inv(information[np.ix_(free, free)])
+    except np.linalg.LinAlgError:
+        return out
+    if redundancy <= 0 or not np.all(np.isfinite(inverse)):
+        return out
+    variance_factor = 2.0 * graph.error(values) / redundancy
+    step, cov = np.zeros(offsets[-1]), np.zeros((offsets[-1], offsets[-1]))
+    step[free] = inverse @ np.asarray(eta, float).ravel()[free]
+    cov[np.ix_(free, free)] = inverse * variance_factor
+    for g, o, n in zip(refined, offsets[:-1], sizes):
+        g_step, g_cov = step[o:o + n], cov[o:o + n, o:o + n]
+        if n == 3:  # Cal3Bundler (f, k1, k2) -> the Cal3DS2 layout, fx = fy = f
+            where = np.array([0, 1, 5, 6])
+            layout = np.zeros((4, 3))
+            layout[[0, 1, 2, 3], [0, 0, 1, 2]] = 1.0
+            g_step, g_cov = np.zeros(9), np.zeros((9, 9))
+            g_step[where] = layout @ step[o:o + n]
+            g_cov[np.ix_(where, where)] = layout @ cov[o:o + n, o:o + n] @ layout.T
+        out[g] = (g_step, g_cov)
+    return out
+
+
+def _free_local(model: str, refine: str) -> list[int]:
+    """The free components of a group's calibration variable in its own tangent layout."""
+    free = free_ds2(model, refine)
+    if _uses_bundler(model, refine):
+        return [k for k, j in enumerate((0, 5, 6)) if j in free]
+    return free

@@ -48,9 +48,11 @@ from bench_mapping import run_colmap as run_colmap_mapper  # noqa: E402
 from benchmarks_page import add_page_arguments, markdown_table, peer_version, publish, run_context  # noqa: E402
 
 from sfm.api import reconstruct  # noqa: E402
+from sfm.clustering.options import ClusterOptions  # noqa: E402
 from sfm.evaluation.ground_truth import read_gt_table  # noqa: E402
 from sfm.evaluation.metrics import evaluate  # noqa: E402
 from sfm.io.colmap_model import read_model  # noqa: E402
+from sfm.stages.cluster import run_cluster  # noqa: E402
 
 GT_TABLE = Path("gt") / "cameras_gt_opencv.txt"
 MIN_CLUSTERS = 3
@@ -84,17 +86,21 @@ def graphsfm_default(images: Path, workspace: Path, recording: bool) -> tuple[Pa
 
 def graphsfm_clusters(database: Path, workspace: Path, num_images: int) -> tuple[Path, float, dict, int]:
     """``reconstruct`` from a copy of ``database`` with the largest ``max_cluster_size`` that gives
-    at least ``MIN_CLUSTERS`` clusters; (model, seconds, report, max_cluster_size)."""
-    size = max(2, -(-num_images // MIN_CLUSTERS))
-    while True:
+    at least ``MIN_CLUSTERS`` clusters (found by the ``cluster`` stage alone, from N - 1 down:
+    the size bounds the expanded clusters, overlap included); (model, seconds, report,
+    max_cluster_size)."""
+    size = max(2, num_images - 1)
+    while size > 2:
         fresh(workspace)
         shutil.copy(database, workspace / "database.db")
-        t0 = time.perf_counter()
-        _, report = reconstruct(None, workspace, recording=False, max_cluster_size=size)
-        seconds = time.perf_counter() - t0
-        if report.get("num_clusters", 1) >= MIN_CLUSTERS or size <= 2:
-            return workspace / "sparse" / "0", seconds, report, size
+        if run_cluster(workspace, ClusterOptions(max_cluster_size=size)).num_clusters >= MIN_CLUSTERS:
+            break
         size -= 1
+    fresh(workspace)
+    shutil.copy(database, workspace / "database.db")
+    t0 = time.perf_counter()
+    _, report = reconstruct(None, workspace, recording=False, max_cluster_size=size)
+    return workspace / "sparse" / "0", time.perf_counter() - t0, report, size
 
 
 def colmap_frontend(images: Path, workspace: Path, threads: int) -> tuple[Path, float]:

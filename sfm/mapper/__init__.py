@@ -27,7 +27,11 @@ Design, the loop (``sfm.mapper.incremental``):
    image while the model is young.  A camera whose refined intrinsics leave the range a lens can
    have takes its images out of the model (COLMAP's filter).
 6. When no image registers any more: final BAs to a tighter tolerance, and a new model from the
-   remaining images; several models are a result, not an error.
+   remaining images; several models are a result, not an error.  With
+   ``intrinsics_refinement`` "auto" the final BAs also refine a camera's principal point when
+   the model's covariance calls it determined (its shift from the nominal value significant at
+   3 sigma, its correlation with the other intrinsics below 0.9); by default it is held, as
+   COLMAP holds it.
 
 Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
 image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised
@@ -52,6 +56,8 @@ Modules, in reading order:
 - ``sfm.mapper.triangulation``: batched DLT, triangulation angles, point refinement.
 - ``sfm.mapper.bundle_adjuster``: ``BundleAdjuster``, which local, global and final BAs move
   what, and when they stop.
+- ``sfm.mapper.principal_point``: the test that decides whether a final BA keeps a camera's
+  refined principal point.
 - ``sfm.mapper.output``: the model as a ``Reconstruction``, and the growing model for Rerun.
 
 Paper: section 3.2 (local incremental SfM of each cluster, in parallel) and section 4.1

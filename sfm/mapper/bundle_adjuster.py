@@ -15,7 +15,10 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
 - BA of a region (a model extended by new images, ``graphsfm extend``): the given images and
   the registered images that share points with them free, every point those free images see,
   the other images that see those points held; its cost grows with the region, not the model.
-- Final BAs of a model: every image and every track, to a tighter tolerance; above
+- Final BAs of a model: every image and every track, to a tighter tolerance; with
+  ``intrinsics_refinement="auto"`` the principal point too of each camera whose shift from its
+  nominal value the model determines (``sfm.mapper.principal_point``, tested before the BA at
+  the current state); above
   ``ba_max_observations`` observations as the consensus of BAs over random track parts
   (``backend.partitioned_ba``), the points then re-estimated with the cameras held.
 
@@ -35,8 +38,11 @@ import logging
 import numpy as np
 
 from backend.ba_problem import BAOptions, BAProblem
+from backend.bundle_adjustment import calibration_step, free_ds2
+from backend.camera_models import ds2_from_params
 from backend.partitioned_ba import bundle_adjust_partitioned
 from backend.track_subset import select_tracks
+from sfm.mapper.principal_point import PrincipalPointTest, check_principal_point
 from sfm.core import progress
 from sfm.mapper.state import ROW_CHUNK, MapperState
 from sfm.mapper.tracks import work_cuts
@@ -60,6 +66,8 @@ class BundleAdjuster:
         self.opts = state.opts
         self.last_rms = float("nan")
         self.last_decrease = 0.0
+        # camera index -> the principal point test of the last final BA that ran it
+        self.principal_point_tests: dict[int, PrincipalPointTest] = {}
 
     # ------------------------------------------------------------------ the three kinds
     def local(self, i: int) -> None:
@@ -93,13 +101,16 @@ class BundleAdjuster:
         tracks = np.flatnonzero(s.track_valid)
         if final:
             parts = self._num_parts(tracks)
-            self._adjust(free, tracks, self.opts.intrinsics_refinement, 100, tolerance, parts=parts,
-                         loss_scale=loss_scale, on_iteration=_report_final_ba(len(free)))
+            refine = self.opts.intrinsics_refinement
+            if refine == "auto":
+                refine = self._final_levels(free, tracks, loss_scale)
+            self._adjust(free, tracks, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
+                         on_iteration=_report_final_ba(len(free)))
             if parts > 1:
                 self.refine_points(tracks)
         else:
             subset = self._subset(tracks)
-            self._adjust(free, subset, self.opts.intrinsics_refinement, 25, GROWING_TOLERANCE, predictive=True,
+            self._adjust(free, subset, self._growing_level(), 25, GROWING_TOLERANCE, predictive=True,
                          loss_scale=loss_scale)
             if len(subset) < len(tracks):
                 self.refine_points(np.setdiff1d(tracks, subset))
@@ -127,7 +138,7 @@ class BundleAdjuster:
         tracks = tracks[s.track_valid[tracks]]
         outside = s.registered.copy()
         outside[free] = False
-        refine = self.opts.intrinsics_refinement
+        refine = self._growing_level()
         if np.intersect1d(np.unique(s.cam_index[free]), np.unique(s.cam_index[outside])).size:
             refine = "none"
         parts = self._num_parts(tracks)
@@ -158,6 +169,55 @@ class BundleAdjuster:
             s.set_points(chunk, xyz)
 
     # ------------------------------------------------------------------ helpers
+    def _growing_level(self) -> str:
+        """What the growing model's global BAs refine: "auto" holds the principal point."""
+        level = self.opts.intrinsics_refinement
+        return "focal_radial" if level == "auto" else level
+
+    def _final_levels(self, free: np.ndarray, tracks: np.ndarray, loss_scale: float) -> list[str]:
+        """What a final BA refines of each camera under "auto": focal length and distortion, and
+        the principal point of the cameras that pass :func:`check_principal_point`, tested at
+        the current state (the Gauss-Newton step a BA freeing it would take, with its
+        covariance, ``backend.bundle_adjustment.calibration_step``) against the camera's nominal
+        principal point.  A camera whose principal point is already off its nominal value passed
+        before (in this model, or in the clusters merged into it) and keeps it free.  The test
+        runs on the growing model's track subset (:meth:`_subset`: each image's best track per
+        grid cell, so every image and every part of it counts): its covariance is larger than the
+        full problem's, a conservative test, at the cost of a fraction of the final BA."""
+        s = self.state
+        levels = ["focal_radial"] * len(s.priors)
+        untested = []
+        for c in np.unique(s.cam_index[free]):
+            prior = s.priors[c]
+            if prior.fixed:
+                continue
+            nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
+            if np.any(nominal[[3, 4]] != current[[3, 4]]):
+                levels[c] = "all"
+            else:
+                untested.append(int(c))
+        if not untested:
+            return levels
+        problem, _, _, cams = self._problem(free, self._subset(tracks))
+        if problem is None:
+            return levels
+        trial = tuple("all" if c in untested else "none" for c in cams)
+        steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
+        for k, c in enumerate(cams):
+            if c not in untested:
+                continue
+            prior = s.priors[c]
+            nominal = ds2_from_params(prior.model, prior.params)
+            step, cov = steps[k] if steps[k] is not None else (None, None)
+            estimate = ds2_from_params(prior.model, s.params[c]) + (step if step is not None else 0.0)
+            test = check_principal_point(nominal, estimate, cov, free_ds2(prior.model, "all"))
+            self.principal_point_tests[int(c)] = test
+            log.info("%s: camera %d (%d images): %s", s.payload.label, c,
+                     int(np.sum(s.registered & (s.cam_index == c))), test.summary())
+            if test.accepted:
+                levels[c] = "all"
+        return levels
+
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final
         model's ``max_reproj_error``."""
@@ -188,15 +248,14 @@ class BundleAdjuster:
         keep = select_tracks(s.obs_image[rows], owner, s.obs_px[rows], sizes, np.minimum(err, 1e6), len(tracks), 0)
         return tracks[keep]
 
-    def _adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str, max_iterations: int,
-                tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
-                predictive: bool = False, loss_scale: float | None = None, on_iteration=None) -> None:
-        """BA of ``tracks`` with the images ``free`` free and the others that see them held;
-        ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
+    def _problem(self, free: np.ndarray, tracks: np.ndarray):
+        """The BA problem of ``tracks`` with the images ``free`` free and the others that see
+        them held: ``(problem, image order, number of free images, the state's cameras of its
+        groups)``; ``(None, ...)`` without observations."""
         s = self.state
         rows, _ = s.inlier_rows(tracks)
         if len(rows) == 0:
-            return
+            return None, None, 0, None
         images = np.unique(s.obs_image[rows])
         fixed = np.setdiff1d(images, free)
         order = np.concatenate([np.intersect1d(free, images), fixed])
@@ -207,8 +266,6 @@ class BundleAdjuster:
         cams = np.unique(s.cam_index[order])
         cam_local = np.full(len(s.priors), -1)
         cam_local[cams] = np.arange(len(cams))
-        if any(s.priors[c].fixed for c in cams):
-            refine = "none"
         n_free = len(order) - len(fixed)
         problem = BAProblem(
             camera_models=[s.priors[c].model for c in cams], camera_params=[s.params[c] for c in cams],
@@ -217,12 +274,30 @@ class BundleAdjuster:
             obs_point=point_local[s.obs_track[rows]], obs_xy=s.obs_px[rows], obs_sigma=s.obs_sigma[rows],
             fixed_poses=tuple(range(n_free, len(order))),
         )
+        return problem, order, n_free, cams
+
+    def _adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str | list[str], max_iterations: int,
+                tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
+                predictive: bool = False, loss_scale: float | None = None, on_iteration=None) -> None:
+        """BA of ``tracks`` with the images ``free`` free and the others that see them held;
+        ``refine``: one level for every camera, or one per camera of the state;
+        ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
+        s = self.state
+        problem, order, n_free, cams = self._problem(free, tracks)
+        if problem is None:
+            return
+        levels = [refine] * len(s.priors) if isinstance(refine, str) else list(refine)
+        if any(s.priors[c].fixed for c in cams):
+            levels = ["none"] * len(s.priors)
+        group_levels = tuple(levels[c] for c in cams)
+        refined = any(level != "none" for level in group_levels)
         options = BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale if loss_scale is None else loss_scale,
-                            refine_intrinsics=refine, max_iterations=max_iterations, relative_tolerance=tolerance,
-                            optimizer=optimizer, predictive_stop=predictive, on_iteration=on_iteration)
+                            refine_intrinsics=group_levels, max_iterations=max_iterations,
+                            relative_tolerance=tolerance, optimizer=optimizer, predictive_stop=predictive,
+                            on_iteration=on_iteration)
         result = bundle_adjust_partitioned(problem, parts, options, seed=self.opts.seed)
         s.apply_adjustment(order[:n_free], result.rotations[:n_free], result.translations[:n_free], tracks,
-                           result.points, cams if refine != "none" else None, result.camera_params)
+                           result.points, cams if refined else None, result.camera_params)
         self.last_rms = float(result.final_rms)
         self.last_decrease = float(result.last_decrease)
 
