@@ -239,7 +239,8 @@ def test_global_bundle_adjustments_take_the_inlier_threshold_as_loss_scale(tmp_p
         for optimizer, loss, scale, refine in seen:
             assert loss == opts.loss
             if optimizer == "gauss_newton_or_lm":  # a local BA: poses and points only
-                assert (scale, refine) == (local, "none")
+                levels = {refine} if isinstance(refine, str) else set(refine)  # one level, or one per camera
+                assert (scale, levels) == (local, {"none"})
             else:
                 assert scale == glob
         assert seen[-1][0] == "lm" and seen[-1][2] == glob  # the final BA
