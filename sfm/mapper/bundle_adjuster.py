@@ -181,7 +181,8 @@ class BundleAdjuster:
         the current state (the Gauss-Newton step a BA freeing it would take, with its
         covariance, ``backend.bundle_adjustment.calibration_step``) against the camera's nominal
         principal point.  A camera whose principal point is already off its nominal value passed
-        before (in this model, or in the clusters merged into it) and keeps it free.  The first
+        before (in this model, or in the clusters merged into it) and keeps it free; one the
+        test held at an earlier final BA of this model stays held, untested again.  The first
         two steps run on the growing model's track subset (:meth:`_subset`: each image's best
         track per grid cell, so every image and every part of it counts): its covariance is
         larger than the full problem's, a conservative screen, at the cost of a fraction of the
@@ -197,7 +198,7 @@ class BundleAdjuster:
             nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
             if np.any(nominal[[3, 4]] != current[[3, 4]]):
                 levels[c] = "all"
-            else:
+            elif int(c) not in self.principal_point_tests:
                 untested.append(int(c))
         if not untested:
             return levels
@@ -228,7 +229,10 @@ class BundleAdjuster:
         camera ``camera``'s images among ``free``, split in two by :func:`split_halves`; each half
         bundle-adjusted alone on the observations of ``tracks`` in its images (every pose and
         point free, the camera's intrinsics all refined, the gauge held by the BA's priors), then
-        its Cal3DS2 estimate (the optimum plus the calibration step there) and covariance.  Every
+        its Cal3DS2 estimate and covariance.  The BA stops as a growing model's global BA does
+        (25 iterations, relative decrease 1e-3) and the calibration step from where it stopped
+        completes the estimate to first order: a half that converges slowly is one that
+        determines the principal point poorly, and its covariance says so.  Every
         track, unless the two halves together would exceed twice ``ba_max_observations``: then
         the track subset of :meth:`_subset`.  None when a half has fewer than
         ``MIN_HALF_IMAGES`` images or its system is singular."""
@@ -271,14 +275,20 @@ class BundleAdjuster:
             obs_image=image_local[s.obs_image[rows]], obs_point=point_local, obs_xy=s.obs_px[rows],
             obs_sigma=s.obs_sigma[rows])
         options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
-                            max_iterations=100, relative_tolerance=FINAL_TOLERANCE)
+                            max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
         result = bundle_adjust(problem, options)
+        log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label, camera,
+                  len(images), len(rows), result.iterations, result.time_s)
         adjusted = replace(problem, camera_params=result.camera_params, rotations=result.rotations,
                            translations=result.translations, points=result.points)
         [step] = calibration_step(adjusted, options)
         if step is None:
             return None
         return ds2_from_params(prior.model, result.camera_params[0]) + step[0], step[1]
+
+    def forget_principal_point_tests(self) -> None:
+        """Start a new model: its first final BA tests every camera's principal point again."""
+        self.principal_point_tests.clear()
 
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final
