@@ -69,6 +69,8 @@ class BundleAdjuster:
         self.last_decrease = 0.0
         # camera index -> the principal point test of the last final BA that ran it
         self.principal_point_tests: dict[int, PrincipalPointTest] = {}
+        # cameras whose split-sample step held the principal point in this model: not tested again
+        self.held_by_halves: set[int] = set()
 
     # ------------------------------------------------------------------ the three kinds
     def local(self, i: int) -> None:
@@ -182,7 +184,8 @@ class BundleAdjuster:
         covariance, ``backend.bundle_adjustment.calibration_step``) against the camera's nominal
         principal point.  A camera whose principal point is already off its nominal value passed
         before (in this model, or in the clusters merged into it) and keeps it free; one the
-        test held at an earlier final BA of this model stays held, untested again.  The first
+        split-sample step held at an earlier final BA of this model stays held, untested again
+        (the first two steps, cheap, run at every final BA).  The first
         two steps run on the growing model's track subset (:meth:`_subset`: each image's best
         track per grid cell, so every image and every part of it counts): its covariance is
         larger than the full problem's, a conservative screen, at the cost of a fraction of the
@@ -198,7 +201,7 @@ class BundleAdjuster:
             nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
             if np.any(nominal[[3, 4]] != current[[3, 4]]):
                 levels[c] = "all"
-            elif int(c) not in self.principal_point_tests:
+            elif int(c) not in self.held_by_halves:
                 untested.append(int(c))
         if not untested:
             return levels
@@ -217,6 +220,8 @@ class BundleAdjuster:
             test = check_principal_point(nominal, estimate, cov, free_ds2(prior.model, "all"))
             if test.accepted:
                 test = confirm_by_halves(test, nominal, self._halves(c, free, tracks, loss_scale))
+                if not test.accepted:
+                    self.held_by_halves.add(int(c))
             self.principal_point_tests[int(c)] = test
             log.info("%s: camera %d (%d images): %s", s.payload.label, c,
                      int(np.sum(s.registered & (s.cam_index == c))), test.summary())
@@ -289,6 +294,7 @@ class BundleAdjuster:
     def forget_principal_point_tests(self) -> None:
         """Start a new model: its first final BA tests every camera's principal point again."""
         self.principal_point_tests.clear()
+        self.held_by_halves.clear()
 
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final
