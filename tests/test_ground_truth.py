@@ -1,5 +1,5 @@
-"""Tests of sfm.evaluation.ground_truth: GT from a reconstruction, the GT table reader, and the real GT
-tables of ../shared/data."""
+"""Tests of sfm.evaluation.ground_truth: GT from a reconstruction, the GT table reader, the
+projection-matrix reader, and the real GT tables of ../shared/data."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from _helpers_evaluation import _estimate, _ring_scene
 
 from sfm.evaluation.metrics import evaluate
-from sfm.evaluation.ground_truth import gt_from_reconstruction, read_gt_table
+from sfm.evaluation.ground_truth import gt_from_reconstruction, read_gt_table, read_projection_matrices
 from sfm.core.model import Camera, Image, Reconstruction
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
@@ -111,3 +111,55 @@ def test_temple_ring_table_agrees_with_middlebury_parameters():
         np.testing.assert_allclose(pose.K, k, atol=1e-6)
         checked += 1
     assert checked == 47
+
+
+def test_read_projection_matrices_splits_p_into_k_r_t(tmp_path):
+    """P = s K [R | t] with known K (skewed, fx != fy), R and t, and a negative scale s: the
+    reader gives back K (K[2, 2] = 1), R and t; an image without a size is left out; a short block
+    is an error."""
+    rng = np.random.default_rng(1)
+    K = np.array([[2400.0, 3.0, 630.0], [0.0, 2390.0, 930.0], [0.0, 0.0, 1.0]])  # noqa: N806
+    poses = {}
+    text = ["# name, then P"]
+    for k, scale in enumerate((1.0, -2.5, 1e-3)):
+        q = rng.standard_normal(4)
+        q /= np.linalg.norm(q)
+        w, x, y, z = q
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],  # noqa: N806
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        t = rng.standard_normal(3)
+        poses[f"img{k}.jpg"] = (R, t)
+        P = scale * K @ np.column_stack([R, t])  # noqa: N806
+        text += [f"img{k}.jpg"] + [" ".join(f"{v:.17g}" for v in row) for row in P]
+    path = tmp_path / "P_matrices.txt"
+    path.write_text("\n".join(text) + "\n")
+    gt = read_projection_matrices(path, {"img0.jpg": (1296, 1936), "img1.jpg": (1296, 1936), "img2.jpg": (1296, 1936)})
+    assert sorted(gt) == ["img0.jpg", "img1.jpg", "img2.jpg"]
+    for name, (R, t) in poses.items():  # noqa: N806
+        np.testing.assert_allclose(gt[name].K, K, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(gt[name].rotation, R, atol=1e-12)
+        np.testing.assert_allclose(gt[name].translation, t, atol=1e-11)
+        assert (gt[name].width, gt[name].height) == (1296, 1936)
+    assert sorted(read_projection_matrices(path, {"img1.jpg": (1296, 1936)})) == ["img1.jpg"]
+    path.write_text("img0.jpg\n1 0 0 0\n0 1 0 0\n")
+    with pytest.raises(ValueError, match="3 rows of 4 numbers"):
+        read_projection_matrices(path, {})
+
+
+def test_lund_door_projection_matrices_agree_with_its_table_up_to_a_similarity():
+    """Olsson's P matrices of lund_door and its COLMAP pose table are two reconstructions of the
+    same photos: after the Sim3 alignment every camera's rotation agrees within a degree."""
+    path = _real_gt("lund_door").parent / "olsson_P_matrices.txt"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    table = read_gt_table(_real_gt("lund_door"))
+    gt = read_projection_matrices(path, {n: (p.width, p.height) for n, p in table.items()})
+    assert sorted(gt) == sorted(table)
+    recon = Reconstruction()
+    for k, pose in enumerate(gt.values()):
+        recon.add_camera(Camera(k + 1, "PINHOLE", pose.width, pose.height,
+                                [pose.K[0, 0], pose.K[1, 1], pose.K[0, 2], pose.K[1, 2]]))
+        recon.add_image(Image(k + 1, pose.name, k + 1, pose.rotation, pose.translation))
+    result = evaluate(_estimate(recon), table)
+    assert result.num_registered == 12 and result.median_rotation_error_deg < 1.0

@@ -1,9 +1,11 @@
 """``intrinsics_refinement="auto"``: a model's final BAs refine a camera's principal point only
 where the data determine it (``sfm.mapper.principal_point``), so an off-centre principal point is
-found and a centred one is left at its nominal value."""
+found, a centred one is left at its nominal value, and a shift that only some of the viewpoints
+show is held."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 
 import numpy as np
@@ -13,7 +15,8 @@ from sfm.evaluation.ground_truth import gt_from_reconstruction
 from sfm.evaluation.metrics import evaluate
 from sfm.execution.local import LocalExecutor
 from sfm.io.colmap_model import read_model
-from sfm.mapper.principal_point import MAX_CORRELATION, SIGNIFICANCE_CHI2, check_principal_point
+from sfm.mapper.principal_point import (MAX_CORRELATION, SIGNIFICANCE_CHI2, check_principal_point, confirm_by_halves,
+                                        split_halves)
 from sfm.mapper.options import MapperOptions
 from sfm.stages.map import run_map
 from sfm.synthetic.matching import simulate_matching, write_database
@@ -55,6 +58,56 @@ def test_without_a_covariance_the_nominal_value_is_held():
     assert not test.accepted and test.reason == "no covariance"
 
 
+def test_the_halves_are_the_two_ends_of_the_camera_path():
+    """Centres along a line (x), scattered a little across it: the split is at the median of x,
+    whatever the order of the images, and an odd count puts the median image in the first half."""
+    rng = np.random.default_rng(0)
+    x = rng.permutation(10).astype(float)
+    centers = np.column_stack([x, 0.1 * rng.standard_normal(10), 0.1 * rng.standard_normal(10)])
+    low = split_halves(centers)
+    assert low.sum() == 5
+    # the principal axis has no sign: one half is x < 4.5, the other x > 4.5
+    np.testing.assert_array_equal(low if low[x == 0][0] else ~low, x < 4.5)
+    low9 = split_halves(centers[x < 9])
+    assert sorted(np.sum(m) for m in (low9, ~low9)) == [4, 5]
+
+
+def _halves(shift_a, shift_b, std=1.0):
+    halves = []
+    for shift in (shift_a, shift_b):
+        estimate = NOMINAL.copy()
+        estimate[[3, 4]] += shift
+        halves.append((estimate, _covariance(std)))
+    return tuple(halves)
+
+
+@pytest.mark.parametrize("shift_a, shift_b, accepted, halves_chi2, mean_chi2", [
+    # the same shift from both halves: the mean (6, -4) with covariance (I + I) / 4 -> 52 / 0.5
+    ((6.0, -4.0), (6.0, -4.0), True, 0.0, 104.0),
+    # halves 2 px apart with std 1 each: chi2 2 over 2 dof, within their covariances, no widening
+    ((5.0, -4.0), (7.0, -4.0), True, 2.0, 104.0),
+    # a shift one end of the path shows and the other does not: d = (0, 32), chi2 512, widened by 256
+    ((0.0, 4.0), (0.0, 36.0), False, 512.0, 400.0 / (0.5 * 256.0)),
+])
+def test_a_shift_is_kept_only_when_the_halves_reproduce_it(shift_a, shift_b, accepted, halves_chi2, mean_chi2):
+    estimate = NOMINAL.copy()
+    estimate[[3, 4]] += np.add(shift_a, shift_b) / 2
+    screened = check_principal_point(NOMINAL, estimate, _covariance(1.0), FREE)
+    assert screened.accepted
+    test = confirm_by_halves(screened, NOMINAL, _halves(shift_a, shift_b))
+    assert test.accepted == accepted
+    assert test.halves_chi2 == pytest.approx(halves_chi2, rel=1e-9)
+    assert f"chi2 {mean_chi2:.1f} of the halves' mean shift" in test.reason
+    assert test.reason.startswith("significant, determinable and reproducible" if accepted else "not reproducible")
+    np.testing.assert_allclose(test.halves_shift, [shift_a, shift_b])
+
+
+def test_without_both_halves_the_nominal_value_is_held():
+    screened = check_principal_point(NOMINAL, NOMINAL + 6.0, _covariance(1.0), FREE)
+    test = confirm_by_halves(screened, NOMINAL, None)
+    assert not test.accepted and test.reason.startswith("halves not estimable")
+
+
 def test_auto_finds_an_off_centre_principal_point_and_holds_a_centred_one(tmp_path):
     """Keypoints of a 16-image orbit moved by (20, -12) px: the camera's principal point is off
     the image centre the database states.  Holding it (COLMAP's default, "focal_radial") the
@@ -84,3 +137,32 @@ def test_auto_finds_an_off_centre_principal_point_and_holds_a_centred_one(tmp_pa
     np.testing.assert_allclose(pp_found, [20.0, -12.0], atol=1.5)
     assert rot_held > 5 * rot_c            # the held offset bends the poses
     assert rot_found < 1.5 * rot_c         # found, they are as good as on the centred scene
+
+
+def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, caplog):
+    """The keypoints of the images at one end of the orbit moved by (20, -12) px, the others by
+    (-4, 2): the whole model calls a shift significant, but it is not one constant of the camera
+    (the stand-in for lens error the camera model lacks), so the halves disagree and "auto" holds
+    the principal point at the centre, as "focal_radial" does, with the same model."""
+    opts = SynthOptions(scene="orbit", num_images=16, observations_per_image=800, seed=3)
+    scene = make_scene(opts)
+    pairs = simulate_matching(scene, opts)
+    truth = gt_reconstruction(scene)
+    centers = np.array([truth.images[i + 1].center for i in range(len(scene.names))])
+    one_end = split_halves(centers)
+    moved = replace(scene, keypoints=[k + np.array([20.0, -12.0] if one_end[i] else [-4.0, 2.0])
+                                      for i, k in enumerate(scene.keypoints)])
+    models = {}
+    for mode in ("focal_radial", "auto"):
+        ws = tmp_path / mode
+        ws.mkdir()
+        write_database(moved, pairs, ws / "database.db", camera_model="SIMPLE_RADIAL")
+        with caplog.at_level(logging.INFO, logger="sfm.mapper.bundle_adjuster"):
+            run_map(ws, MapperOptions(intrinsics_refinement=mode), executor=LocalExecutor(1))
+        models[mode] = read_model(ws / "sparse" / "0")
+    tests = [r.getMessage() for r in caplog.records if "principal point shift" in r.getMessage()]
+    assert tests and all(": held (" in t for t in tests), tests
+    assert any("held (not reproducible" in t for t in tests), tests  # the screen passed, the halves did not
+    [held], [auto] = models["focal_radial"].cameras.values(), models["auto"].cameras.values()
+    np.testing.assert_array_equal(auto.params, held.params)
+    assert auto.params[1:3].tolist() == [(scene.width - 1) / 2, (scene.height - 1) / 2]

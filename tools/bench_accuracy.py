@@ -25,6 +25,12 @@ time, and a verdict: graphsfm's AUC@1 and AUC@5 against COLMAP's best mapper (th
 over COLMAP's rows, per threshold), and the forced-cluster run against the same (within 0.01).
 Images graphsfm did not register and models it did not merge are listed with the step that
 failed (``unregistered`` and ``warnings`` of ``report.json``).
+
+A set whose ``gt/`` also holds projection matrices (``*P_matrices.txt``, read by
+:func:`sfm.evaluation.ground_truth.read_projection_matrices`) gets a second table: the same
+models evaluated against them, the same verdict.  Where the pose table was itself made by one of
+the programs compared (lund_door's is a COLMAP model), that is a check by a ground truth that
+program did not make.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ from benchmarks_page import add_page_arguments, markdown_table, peer_version, pu
 
 from sfm.api import reconstruct  # noqa: E402
 from sfm.clustering.options import ClusterOptions  # noqa: E402
-from sfm.evaluation.ground_truth import read_gt_table  # noqa: E402
+from sfm.evaluation.ground_truth import read_gt_table, read_projection_matrices  # noqa: E402
 from sfm.evaluation.metrics import evaluate  # noqa: E402
 from sfm.io.colmap_model import read_model  # noqa: E402
 from sfm.stages.cluster import run_cluster  # noqa: E402
@@ -140,27 +146,44 @@ def bench_set(data: Path, name: str, out: Path, threads: int, recording: bool, c
               context: dict) -> tuple[list[dict], list[str]]:
     images, gt = data / name / "images", read_gt_table(data / name / GT_TABLE)
     where = out / name
-    rows, notes = [], []
+    rows, notes, models = [], [], []
+
+    def add(method: str, model: Path | None, seconds: float) -> None:
+        rows.append(evaluate_row(method, model, seconds, gt))
+        models.append((method, model))
+
     model, seconds, report = graphsfm_default(images, where / "graphsfm", recording)
-    rows.append(evaluate_row("graphsfm", model, seconds, gt))
+    add("graphsfm", model, seconds)
     notes += [f"graphsfm: {line}" for line in failures(report)]
     database = where / "graphsfm" / "database.db"
     model, seconds, report, size = graphsfm_clusters(database, where / "graphsfm_clusters", len(gt))
-    rows.append(evaluate_row(f"graphsfm, {report.get('num_clusters')} clusters (--max-cluster-size {size})",
-                             model, seconds, gt))
+    add(f"graphsfm, {report.get('num_clusters')} clusters (--max-cluster-size {size})", model, seconds)
     notes += [f"graphsfm, clusters: {line}" for line in failures(report)]
     for kind in ("incremental", "global"):
         model, seconds = run_colmap_mapper(database, where / f"colmap_{kind}", kind)
-        rows.append(evaluate_row(f"colmap {kind} (graphsfm's database)", model, seconds, gt))
+        add(f"colmap {kind} (graphsfm's database)", model, seconds)
     if colmap_frontend_too:
         colmap_db, front_s = colmap_frontend(images, where / "colmap_frontend", threads)
         for kind in ("incremental", "global"):
             model, seconds = run_colmap_mapper(colmap_db, where / f"colmap_frontend_{kind}", kind)
-            rows.append(evaluate_row(f"colmap extract+match, {kind}", model, front_s + seconds, gt))
+            add(f"colmap extract+match, {kind}", model, front_s + seconds)
     for r in rows:
         r.update({"date": context["date"], "machine": context["machine"],
                   "code": peer_version() if r["method"].startswith("colmap") else context["code"]})
-    return rows, verdict(rows, len(gt)) + notes
+    return rows, verdict(rows, len(gt)) + notes, second_opinions(data / name, gt, models)
+
+
+def second_opinions(folder: Path, gt: dict, models: list[tuple[str, Path | None]]) -> list[tuple[str, list[dict], list[str]]]:
+    """For each projection-matrix file in ``folder/gt`` (``*P_matrices.txt``): its name, the
+    models evaluated against it (no times: the same runs as the main table) and the verdict."""
+    out = []
+    sizes = {name: (pose.width, pose.height) for name, pose in gt.items()}
+    for path in sorted((folder / "gt").glob("*P_matrices.txt")):
+        other = read_projection_matrices(path, sizes)
+        rows = [{k: v for k, v in evaluate_row(method, model, 0.0, other).items() if k != "time_s"}
+                for method, model in models]
+        out.append((path.name, rows, verdict(rows, len(other))))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -183,11 +206,15 @@ def main(argv: list[str] | None = None) -> int:
     context = run_context()
     sections = []
     for name in sets:
-        rows, notes = bench_set(args.data, name, out, threads, args.recording, not args.no_colmap_frontend, context)
+        rows, notes, others = bench_set(args.data, name, out, threads, args.recording, not args.no_colmap_frontend,
+                                        context)
         text = f"### {name}\n\n{markdown_table(rows)}\n\n" + "\n".join(f"- {n}" for n in notes)
+        for source, other_rows, other_notes in others:
+            text += (f"\n\n#### {name} against `gt/{source}`\n\n{markdown_table(other_rows)}\n\n"
+                     + "\n".join(f"- {n}" for n in other_notes))
         print(text + "\n", flush=True)
         sections.append(text)
-        (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes}, indent=1))
+        (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes, "other_gt": others}, indent=1))
     intro = ("graphsfm (defaults; and with forced clusters) and pycolmap's mappers on the same images, "
              "evaluated by `sfm.evaluation.metrics.evaluate` (largest model; rotation error after Sim3 "
              "alignment; relative-pose AUC). Times: graphsfm's default row the whole run (extract to final "

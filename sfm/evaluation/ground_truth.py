@@ -12,6 +12,9 @@ Two sources:
   ``IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ`` (:data:`GT_TABLE_COLUMNS`).
 * :func:`gt_from_reconstruction`: the registered images of a reconstruction (e.g. a COLMAP
   model used as reference).
+* :func:`read_projection_matrices`: one 3x4 projection matrix ``P = K [R | t]`` per image, as
+  photogrammetry and multi-view datasets ship their cameras (Oxford VGG, Strecha, Olsson's
+  Lund sets), split into ``K``, ``R`` and ``t`` by the RQ decomposition.
 
 The library does no printing; it logs through ``logging.getLogger(__name__)``.
 """
@@ -132,4 +135,35 @@ def gt_from_reconstruction(recon: Reconstruction) -> dict[str, GTPose]:
             image.name, camera.width, camera.height, camera.K,
             image.cam_from_world_rotation, image.cam_from_world_translation,
         )
+    return poses
+
+
+def read_projection_matrices(path: str | Path, sizes: dict[str, tuple[int, int]]) -> dict[str, GTPose]:
+    """Read GT poses from projection matrices: blocks of a line with the image name, then the 3
+    rows of its ``P`` (4 numbers each), in pixels, ``x ~ P X``; ``#`` lines and blank lines are
+    skipped.  ``sizes``: each image's (width, height), which ``P`` does not hold; images without
+    a size are left out.  ``P = s K [R | t]`` is split by the RQ decomposition of its left 3x3
+    block, with ``K``'s diagonal made positive and ``R`` a rotation (the sign of ``s`` taken
+    out), and ``K`` scaled to ``K[2, 2] = 1``."""
+    from scipy.linalg import rq
+
+    path = Path(path)
+    tokens = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    poses: dict[str, GTPose] = {}
+    for k in range(0, len(tokens), 4):
+        block = tokens[k:k + 4]
+        if len(block) != 4 or len(block[0]) != 1 or any(len(row) != 4 for row in block[1:]):
+            raise ValueError(f"{path}: expected an image name and 3 rows of 4 numbers at block {k // 4 + 1}")
+        name = block[0][0]
+        P = np.array([[float(v) for v in row] for row in block[1:]])  # noqa: N806
+        K, R = rq(P[:, :3])  # noqa: N806
+        signs = np.diag(np.sign(np.diag(K)))
+        K, R = K @ signs, signs @ R  # noqa: N806 - signs is its own inverse
+        t = np.linalg.solve(K, P[:, 3])
+        if np.linalg.det(R) < 0:  # P was given up to a negative scale
+            R, t = -R, -t  # noqa: N806
+        if name in sizes:
+            width, height = sizes[name]
+            poses[name] = GTPose(name, width, height, K / K[2, 2], R, t)
+    logger.debug("read %d GT poses from %s", len(poses), path)
     return poses

@@ -27,11 +27,11 @@ Design, the loop (``sfm.mapper.incremental``):
    image while the model is young.  A camera whose refined intrinsics leave the range a lens can
    have takes its images out of the model (COLMAP's filter).
 6. When no image registers any more: final BAs to a tighter tolerance, and a new model from the
-   remaining images; several models are a result, not an error.  With
-   ``intrinsics_refinement`` "auto" the final BAs also refine a camera's principal point when
-   the model's covariance calls it determined (its shift from the nominal value significant at
-   3 sigma, its correlation with the other intrinsics below 0.9); by default it is held, as
-   COLMAP holds it.
+   remaining images; several models are a result, not an error.  The final BAs also refine a
+   camera's principal point where the photos determine it (``intrinsics_refinement`` "auto",
+   the default): its shift from the nominal value significant at 3 sigma, its correlation with
+   the other intrinsics below 0.9, and the two halves of its images, each adjusted alone,
+   agreeing on it; elsewhere it is held, as COLMAP always holds it.
 
 Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
 image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised

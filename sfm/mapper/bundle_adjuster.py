@@ -34,15 +34,16 @@ COLMAP stops its global BA on a gradient tolerance instead (Ceres).
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 
 from backend.ba_problem import BAOptions, BAProblem
-from backend.bundle_adjustment import calibration_step, free_ds2
+from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2
 from backend.camera_models import ds2_from_params
 from backend.partitioned_ba import bundle_adjust_partitioned
 from backend.track_subset import select_tracks
-from sfm.mapper.principal_point import PrincipalPointTest, check_principal_point
+from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, check_principal_point, confirm_by_halves, split_halves
 from sfm.core import progress
 from sfm.mapper.state import ROW_CHUNK, MapperState
 from sfm.mapper.tracks import work_cuts
@@ -68,6 +69,8 @@ class BundleAdjuster:
         self.last_decrease = 0.0
         # camera index -> the principal point test of the last final BA that ran it
         self.principal_point_tests: dict[int, PrincipalPointTest] = {}
+        # cameras whose split-sample step held the principal point in this model: not tested again
+        self.held_by_halves: set[int] = set()
 
     # ------------------------------------------------------------------ the three kinds
     def local(self, i: int) -> None:
@@ -180,10 +183,14 @@ class BundleAdjuster:
         the current state (the Gauss-Newton step a BA freeing it would take, with its
         covariance, ``backend.bundle_adjustment.calibration_step``) against the camera's nominal
         principal point.  A camera whose principal point is already off its nominal value passed
-        before (in this model, or in the clusters merged into it) and keeps it free.  The test
-        runs on the growing model's track subset (:meth:`_subset`: each image's best track per
-        grid cell, so every image and every part of it counts): its covariance is larger than the
-        full problem's, a conservative test, at the cost of a fraction of the final BA."""
+        before (in this model, or in the clusters merged into it) and keeps it free; one the
+        split-sample step held at an earlier final BA of this model stays held, untested again
+        (the first two steps, cheap, run at every final BA).  The first
+        two steps run on the growing model's track subset (:meth:`_subset`: each image's best
+        track per grid cell, so every image and every part of it counts): its covariance is
+        larger than the full problem's, a conservative screen, at the cost of a fraction of the
+        final BA.  The split-sample step (:meth:`_halves`), two BAs of half the images each, runs
+        only for a camera that passed them."""
         s = self.state
         levels = ["focal_radial"] * len(s.priors)
         untested = []
@@ -194,7 +201,7 @@ class BundleAdjuster:
             nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
             if np.any(nominal[[3, 4]] != current[[3, 4]]):
                 levels[c] = "all"
-            else:
+            elif int(c) not in self.held_by_halves:
                 untested.append(int(c))
         if not untested:
             return levels
@@ -211,12 +218,83 @@ class BundleAdjuster:
             step, cov = steps[k] if steps[k] is not None else (None, None)
             estimate = ds2_from_params(prior.model, s.params[c]) + (step if step is not None else 0.0)
             test = check_principal_point(nominal, estimate, cov, free_ds2(prior.model, "all"))
+            if test.accepted:
+                test = confirm_by_halves(test, nominal, self._halves(c, free, tracks, loss_scale))
+                if not test.accepted:
+                    self.held_by_halves.add(int(c))
             self.principal_point_tests[int(c)] = test
             log.info("%s: camera %d (%d images): %s", s.payload.label, c,
                      int(np.sum(s.registered & (s.cam_index == c))), test.summary())
             if test.accepted:
                 levels[c] = "all"
         return levels
+
+    def _halves(self, camera: int, free: np.ndarray, tracks: np.ndarray, loss_scale: float):
+        """The split-sample step of the principal point test (``principal_point.confirm_by_halves``):
+        camera ``camera``'s images among ``free``, split in two by :func:`split_halves`; each half
+        bundle-adjusted alone on the observations of ``tracks`` in its images (every pose and
+        point free, the camera's intrinsics all refined, the gauge held by the BA's priors), then
+        its Cal3DS2 estimate and covariance.  The BA stops as a growing model's global BA does
+        (25 iterations, relative decrease 1e-3) and the calibration step from where it stopped
+        completes the estimate to first order: a half that converges slowly is one that
+        determines the principal point poorly, and its covariance says so.  Every
+        track, unless the two halves together would exceed twice ``ba_max_observations``: then
+        the track subset of :meth:`_subset`.  None when a half has fewer than
+        ``MIN_HALF_IMAGES`` images or its system is singular."""
+        s = self.state
+        if self.opts.ba_max_observations and len(s.inlier_rows(tracks)[0]) > 2 * self.opts.ba_max_observations:
+            tracks = self._subset(tracks)  # each half within the BA memory budget
+        images = free[s.cam_index[free] == camera]
+        centers = -np.einsum("nji,nj->ni", s.R[images], s.t[images])
+        low = split_halves(centers)
+        halves = []
+        for half in (images[low], images[~low]):
+            if len(half) < MIN_HALF_IMAGES:
+                return None
+            estimate = self._half_estimate(camera, half, tracks, loss_scale)
+            if estimate is None:
+                return None
+            halves.append(estimate)
+        return tuple(halves)
+
+    def _half_estimate(self, camera: int, images: np.ndarray, tracks: np.ndarray, loss_scale: float):
+        """(Cal3DS2 estimate, (9, 9) covariance) of ``camera`` from ``images`` alone (see
+        :meth:`_halves`); None without a usable system."""
+        s = self.state
+        rows, owner = s.inlier_rows(tracks)
+        keep = np.isin(s.obs_image[rows], images)
+        rows, owner = rows[keep], owner[keep]
+        seen, count = np.unique(owner, return_counts=True)
+        keep = np.isin(owner, seen[count >= 2])
+        rows = rows[keep]
+        if len(rows) == 0:
+            return None
+        track_ids = s.obs_track[rows]
+        points, point_local = np.unique(track_ids, return_inverse=True)
+        image_local = np.full(len(s.names), -1)
+        image_local[images] = np.arange(len(images))
+        prior = s.priors[camera]
+        problem = BAProblem(
+            camera_models=[prior.model], camera_params=[s.params[camera]], image_camera=np.zeros(len(images), int),
+            rotations=s.R[images], translations=s.t[images], points=s.track_xyz[points],
+            obs_image=image_local[s.obs_image[rows]], obs_point=point_local, obs_xy=s.obs_px[rows],
+            obs_sigma=s.obs_sigma[rows])
+        options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
+                            max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
+        result = bundle_adjust(problem, options)
+        log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label, camera,
+                  len(images), len(rows), result.iterations, result.time_s)
+        adjusted = replace(problem, camera_params=result.camera_params, rotations=result.rotations,
+                           translations=result.translations, points=result.points)
+        [step] = calibration_step(adjusted, options)
+        if step is None:
+            return None
+        return ds2_from_params(prior.model, result.camera_params[0]) + step[0], step[1]
+
+    def forget_principal_point_tests(self) -> None:
+        """Start a new model: its first final BA tests every camera's principal point again."""
+        self.principal_point_tests.clear()
+        self.held_by_halves.clear()
 
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final

@@ -33,9 +33,9 @@ class MapperOptions(Options):
     global_ba_ratio: float = option(
         1.2, "A global BA runs when the model has grown by this factor (OpenSfM: 1.2).", above=1)
     intrinsics_refinement: str = option(
-        "focal_radial", "What global BAs refine of cameras not given: none, focal, focal_radial (COLMAP's default), "
-        "all (principal point too), or auto: all in a model's final BAs where its covariance determines the "
-        "principal point (sfm.mapper.principal_point).",
+        "auto", "What global BAs refine of cameras not given: none, focal, focal_radial (COLMAP's), all "
+        "(principal point too), or auto: focal_radial, and the principal point in the final BAs where the "
+        "photos determine it (sfm.mapper.principal_point).",
         choices=("none", "focal", "focal_radial", "all", "auto"))
     refine_given_intrinsics: bool = option(
         False, "Also refine intrinsics given with --intrinsics (held fixed otherwise).")

@@ -6,9 +6,10 @@ nominal value: real lenses and sensors are off it by up to a few percent of the 
 the growing model absorbs into its poses and distortion, so the poses carry a systematic error.
 COLMAP holds it by default (its documentation calls its estimation ill-posed in general: a young
 model cannot tell it from a rotation); refining it always (``intrinsics_refinement="all"``) moves
-it on models that do not determine it too.  ``intrinsics_refinement="auto"`` refines it in the final BAs of a model
-(every image and every track) and keeps the estimate only when this test, the one of
-photogrammetric self-calibration for additional parameters, passes for the camera:
+it on models that do not determine it too.  ``intrinsics_refinement="auto"`` (the default)
+refines it in the final BAs of a model (every image and every track) only for the cameras that
+pass this test, the one of photogrammetric self-calibration for additional parameters followed by
+a split-sample check:
 
 - significant: the shift from the nominal value is larger than its uncertainty explains,
   ``d^T C^-1 d`` above the chi-square quantile of 2 degrees of freedom at 99.73% (the two-sided
@@ -17,18 +18,29 @@ photogrammetric self-calibration for additional parameters, passes for the camer
   out, scaled by the a-posteriori variance factor);
 - determinable: its correlation with every other refined intrinsic (focal length, distortion)
   below :data:`MAX_CORRELATION` in magnitude; above it, the shift is a trade between parameters
-  the data do not separate, whatever its apparent significance.
+  the data do not separate, whatever its apparent significance;
+- reproducible: the two halves of the camera's images on either side of the median of their
+  centres along the centres' principal axis (:func:`split_halves`), each bundle-adjusted on its
+  own with the principal point free, give a significant shift from their own estimates
+  (:func:`confirm_by_halves`): the mean of the two, with the covariance of a mean of two
+  independent estimates, widened by the Birge ratio of metrology where they disagree more than
+  their covariances say (``d^T (C_a + C_b)^-1 d / 2`` for the difference ``d``, 1 on average
+  when the covariances are right).  This is split-sample validation: the principal point is one
+  constant of the camera, so independent photos of it must give the same value.  A shift that is
+  instead lens or sensor error the camera model lacks (decentering distortion, a sensor not
+  parallel to the lens, rolling shutter), which the covariance cannot see because it knows only
+  the modelled parameters, shows up as estimates that depend on where the photos were taken
+  from, and the widened uncertainty swallows it.
 
-A camera that fails keeps the nominal principal point and the final BA runs again without it.
-Nothing here depends on the scene: the test reads only the camera's estimate and its covariance.
-That is also its limit: the covariance knows only the modelled parameters, so where lens error the
-camera model lacks lets a shifted principal point fit the photos as well as the centred one, the
-test can still call the shift significant.  This is why "auto" is an option, not the default.
+A camera that fails keeps its nominal principal point in that final BA.
+Nothing here depends on the scene: the test reads only the camera's estimates and their
+covariances.  The halves need :data:`MIN_HALF_IMAGES` images each; a camera with fewer keeps
+its nominal principal point.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,13 +51,17 @@ SIGNIFICANCE_CHI2 = float(-2.0 * np.log(1.0 - 0.9973))
 # still counts as determined (the usual bound for additional parameters in self-calibrating BA).
 MAX_CORRELATION = 0.9
 PP = (3, 4)  # principal point in the Cal3DS2 vector [fx, fy, s, u0, v0, k1, k2, p1, p2]
+# Fewest images in each half of the split-sample test: three views, the fewest that fix a
+# camera's calibration from image observations alone (the classical self-calibration minimum).
+MIN_HALF_IMAGES = 3
 
 
 @dataclass(frozen=True)
 class PrincipalPointTest:
     """The test's figures for one camera: shift from the nominal principal point (px), its
     standard deviations (px), ``d^T C^-1 d``, the largest correlation with another refined
-    intrinsic, and the outcome with the reason."""
+    intrinsic, the halves' estimates of the shift and the chi-square of their difference (nan
+    where that step did not run), and the outcome with the reason."""
 
     accepted: bool
     shift: tuple[float, float]
@@ -53,11 +69,16 @@ class PrincipalPointTest:
     chi2: float
     max_correlation: float
     reason: str
+    halves_shift: tuple[tuple[float, float], tuple[float, float]] | None = None
+    halves_chi2: float = float("nan")
 
     def summary(self) -> str:
         return (f"principal point shift ({self.shift[0]:+.2f}, {self.shift[1]:+.2f}) px, std ({self.std[0]:.2f}, "
-                f"{self.std[1]:.2f}) px, chi2 {self.chi2:.1f}, max correlation {self.max_correlation:.2f}: "
-                f"{'refined' if self.accepted else 'held'} ({self.reason})")
+                f"{self.std[1]:.2f}) px, chi2 {self.chi2:.1f}, max correlation {self.max_correlation:.2f}"
+                + (f", halves ({self.halves_shift[0][0]:+.2f}, {self.halves_shift[0][1]:+.2f}) and "
+                   f"({self.halves_shift[1][0]:+.2f}, {self.halves_shift[1][1]:+.2f}) px, chi2 {self.halves_chi2:.1f}"
+                   if self.halves_shift is not None else "")
+                + f": {'refined' if self.accepted else 'held'} ({self.reason})")
 
 
 def check_principal_point(nominal_ds2: np.ndarray, estimate_ds2: np.ndarray, covariance: np.ndarray | None,
@@ -84,3 +105,48 @@ def check_principal_point(nominal_ds2: np.ndarray, estimate_ds2: np.ndarray, cov
     if chi2 <= SIGNIFICANCE_CHI2:
         return PrincipalPointTest(False, tuple(shift), tuple(std), chi2, max_corr, "not significant")
     return PrincipalPointTest(True, tuple(shift), tuple(std), chi2, max_corr, "significant and determinable")
+
+
+def split_halves(centers: np.ndarray) -> np.ndarray:
+    """The split of the split-sample test: for camera centres (N, 3), a boolean mask of the
+    images on the low side of the median along the centres' principal axis (the direction of
+    their largest spread).  The two halves see the scene from the two ends of the camera path,
+    so an estimate that depends on the viewpoint differs between them."""
+    centers = np.asarray(centers, float)
+    spread = centers - centers.mean(axis=0)
+    axis = np.linalg.svd(spread, full_matrices=False)[2][0]
+    along = spread @ axis
+    return along < np.median(along) if len(centers) % 2 == 0 else along <= np.median(along)
+
+
+def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
+                      halves: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None) -> PrincipalPointTest:
+    """``test`` (accepted by :func:`check_principal_point`) completed by the split-sample step:
+    ``halves`` the two halves' (Cal3DS2 estimate, (9, 9) covariance), None when they could not be
+    estimated (too few images, a singular system).  Refined only if the halves' mean shift from
+    the nominal value, ``m = (p_a + p_b) / 2``, is significant with the covariance of a mean of
+    two independent estimates, ``(C_a + C_b) / 4``, times the squared Birge ratio
+    ``max(1, d^T (C_a + C_b)^-1 d / 2)`` of their difference ``d = p_a - p_b``:
+    ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`."""
+    if halves is None:
+        return replace(test, accepted=False, reason=f"halves not estimable (fewer than {MIN_HALF_IMAGES} images each, "
+                                                    "or singular)")
+    nominal = np.asarray(nominal_ds2, float)[list(PP)]
+    (a, cov_a), (b, cov_b) = halves
+    pa, pb = np.asarray(a, float)[list(PP)], np.asarray(b, float)[list(PP)]
+    pooled = np.asarray(cov_a, float)[np.ix_(PP, PP)] + np.asarray(cov_b, float)[np.ix_(PP, PP)]
+    d = pa - pb
+    try:
+        chi2 = float(d @ np.linalg.solve(pooled, d))
+    except np.linalg.LinAlgError:
+        chi2 = float("nan")
+    shifts = (tuple(pa - nominal), tuple(pb - nominal))
+    if not np.isfinite(chi2):
+        return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
+    mean = (pa + pb) / 2.0 - nominal
+    widened = float(mean @ np.linalg.solve(pooled / 4.0 * max(1.0, chi2 / 2.0), mean))
+    if widened <= SIGNIFICANCE_CHI2:
+        return replace(test, accepted=False, halves_shift=shifts, halves_chi2=chi2,
+                       reason=f"not reproducible: chi2 {widened:.1f} of the halves' mean shift with their spread")
+    return replace(test, halves_shift=shifts, halves_chi2=chi2,
+                   reason=f"significant, determinable and reproducible: chi2 {widened:.1f} of the halves' mean shift")
