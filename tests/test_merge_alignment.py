@@ -48,3 +48,23 @@ def test_a_camera_no_model_observes_keeps_the_parameters_nearest_the_anchor():
     other = _model([900.0, 320.0, 240.0, 0.0], {"c": 0}, shift=1.0)
     _, params = merged_poses([LocalModel("C0/0", anchor), LocalModel("C1/0", other)], _plan(), {0: Sim3(), 1: Sim3()})
     np.testing.assert_allclose(params[1], [500.0, 320.0, 240.0, 0.0])
+
+
+def test_the_principal_point_is_pooled_over_the_models_that_refined_it_only():
+    """Nominal (319.5, 239.5): the anchor held it (12 observations), the other model refined it to
+    (302, 247) (4 observations).  Focal length and distortion pool over both; the principal point
+    is the refining model's alone, not a mean pulled three quarters of the way back to the
+    centre.  With both holding it, it stays nominal; without ``nominal`` every model counts."""
+    nominal = {1: np.array([768.0, 319.5, 239.5, 0.0])}
+    anchor = _model([500.0, 319.5, 239.5, 0.01], {"a": 8, "b": 4}, shift=0.0)
+    other = _model([520.0, 302.0, 247.0, -0.02], {"b": 2, "c": 2}, shift=1.0)
+    models = [LocalModel("C0/0", anchor), LocalModel("C1/0", other)]
+    sims = {0: Sim3(), 1: Sim3()}
+    _, params = merged_poses(models, _plan(), sims, nominal)
+    np.testing.assert_allclose(params[1], [(12 * 500.0 + 4 * 520.0) / 16, 302.0, 247.0, (12 * 0.01 - 4 * 0.02) / 16],
+                               rtol=0, atol=1e-12)
+    _, pooled_all = merged_poses(models, _plan(), sims)
+    np.testing.assert_allclose(pooled_all[1][1:3], [(12 * 319.5 + 4 * 302.0) / 16, (12 * 239.5 + 4 * 247.0) / 16])
+    held = LocalModel("C1/0", _model([520.0, 319.5, 239.5, -0.02], {"b": 2, "c": 2}, shift=1.0))
+    _, both_held = merged_poses([models[0], held], _plan(), sims, nominal)
+    np.testing.assert_array_equal(both_held[1][1:3], [319.5, 239.5])

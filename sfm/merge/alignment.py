@@ -9,6 +9,10 @@ model estimated for it, each weighted by the observations that model has in that
 images: independent self-calibrations of parts of the scene pooled as the final bundle
 adjustment would weigh them, so the merged model does not start from the calibration error of
 one cluster (which a final BA split into track parts, ``ba_max_observations``, would keep).
+The principal point is pooled only over the models that refined it (their value is off the
+camera's nominal one, ``sfm.mapper.principal_point``): a model that held it has no estimate of it
+to contribute, and averaging its nominal value in would pull the others' estimate back part of
+the way.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from graph.merge_plan import MergePlan
+from backend.camera_models import model_spec
 from backend.sim3 import Sim3
 from sfm.merge.cluster_graph import LocalModel
 
@@ -33,12 +38,16 @@ def anchor_from_model(plan: MergePlan, edges: dict) -> dict[int, Sim3]:
     return out
 
 
-def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3]):
+def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3],
+                 nominal: dict[int, np.ndarray] | None = None):
     """Poses (by image name) in the anchor frame, nearest-to-anchor model first, and camera
     parameters (by camera id) pooled over the models (module docstring): the merged cluster
-    ``C_final`` of Alg. 2 (section 3.2.3), before its refinement."""
+    ``C_final`` of Alg. 2 (section 3.2.3), before its refinement.  ``nominal``: each camera's
+    parameters before any model refined them (the database's), which tell the models that
+    refined its principal point from those that held it; None: pooled over every model."""
     poses = {}
     estimates: dict[int, list[tuple[int, np.ndarray]]] = {}  # camera id -> (observations, params) per model
+    camera_model: dict[int, str] = {}
     for node in sorted(plan.clusters, key=lambda n: (len(plan.path[n]), n)):
         model = models[node].model
         for image in sorted(model.images.values(), key=lambda im: im.name):
@@ -49,10 +58,17 @@ def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3
             observations[image.camera_id] = observations.get(image.camera_id, 0) + image.num_points3D
         for cam_id, cam in model.cameras.items():
             estimates.setdefault(cam_id, []).append((observations.get(cam_id, 0), np.asarray(cam.params, np.float64)))
+            camera_model[cam_id] = cam.model
     params = {}
     for cam_id, found in sorted(estimates.items()):
         w = np.array([n for n, _ in found], dtype=np.float64)
         if w.sum() == 0:  # no model observes it: the parameters of the one nearest the anchor
             w[0] = 1.0
-        params[cam_id] = (w[:, None] * np.stack([p for _, p in found])).sum(axis=0) / w.sum()
+        values = np.stack([p for _, p in found])
+        params[cam_id] = (w[:, None] * values).sum(axis=0) / w.sum()
+        if nominal is not None and cam_id in nominal:
+            pp = list(model_spec(camera_model[cam_id]).pp_idx)
+            refined = np.any(values[:, pp] != np.asarray(nominal[cam_id], np.float64)[pp], axis=1) & (w > 0)
+            if refined.any():
+                params[cam_id][pp] = (w[refined, None] * values[refined][:, pp]).sum(axis=0) / w[refined].sum()
     return poses, params

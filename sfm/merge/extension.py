@@ -46,14 +46,14 @@ def plan_extension(nodes: list[LocalModel], options: MergeOptions, seed: int = 0
     return edges, plan_merges(list(range(len(nodes))), sizes, weights, anchor=ANCHOR)
 
 
-def extended_poses(nodes: list[LocalModel], plan: MergePlan, edges: dict):
+def extended_poses(nodes: list[LocalModel], plan: MergePlan, edges: dict, nominal: dict[int, np.ndarray] | None = None):
     """Poses (by image name) and camera parameters (by camera id) of the anchor's component in
     the anchor's frame (Alg. 2, lines 6 and 10, composed along each tree path): the anchor's own
     images and cameras keep theirs exactly; each new image takes the pose of the model nearest
     the anchor that registered it, each new camera the parameters of the model that registered
-    most of its images."""
+    most of its images (``nominal``: as in ``merged_poses``)."""
     sims = anchor_from_model(plan, edges)
-    poses, params = merged_poses(nodes, plan, sims)
+    poses, params = merged_poses(nodes, plan, sims, nominal)
     anchor = nodes[plan.anchor].model
     for cam_id, cam in anchor.cameras.items():
         params[cam_id] = cam.params.copy()

@@ -333,11 +333,13 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     main = plans[0]
     new_set = set(new_names)
     untouched = [p.anchor for p in plans[1:] if len(p.clusters) == 1 and p.anchor < num_old]
+    with Database(ext.ws / DATABASE, readonly=True) as database:
+        nominal = {cam_id: cam.params for cam_id, cam in database.read_cameras().items()}
     components = []  # (plan, poses, params) of the other plans with a new model: models of their own
     for plan in plans[1:]:
         if not (len(plan.clusters) == 1 and plan.anchor < num_old):
             sims = anchor_from_model(plan, edges)
-            components.append((plan, *merged_poses(nodes, plan, sims)))
+            components.append((plan, *merged_poses(nodes, plan, sims, nominal)))
     t_merge = time.perf_counter() - t0
 
     db = ext.ws / DATABASE
@@ -345,7 +347,7 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     merged_in = [n for n in main.clusters if n != ANCHOR]
     extended = None
     if merged_in:
-        poses, params, sims = extended_poses(nodes, main, edges)
+        poses, params, sims = extended_poses(nodes, main, edges, nominal)
         log_merge(ext.recorder, [n.label for n in nodes], [n.model for n in nodes], edges, [main], [sims], stage="extend")
         anchor_names = {im.name for im in olds[0].images.values()}
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,

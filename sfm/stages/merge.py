@@ -121,11 +121,13 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         edges = build_cluster_graph(models, options, seed=mapper_options.seed)
     plans = plan_components(models, edges)
     write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options))
+    with Database(workspace / DATABASE, readonly=True) as db:
+        nominal = {cam_id: cam.params for cam_id, cam in db.read_cameras().items()}
     components, all_sims = [], []
     for plan in plans:
         sims = anchor_from_model(plan, edges)
         all_sims.append(sims)
-        poses, params = merged_poses(models, plan, sims)
+        poses, params = merged_poses(models, plan, sims, nominal)
         components.append((plan, poses, params))
     labels = [m.label for m in models]
     local_points = sum(len(m.model.points3D) for m in models)
