@@ -261,35 +261,20 @@ class BundleAdjuster:
         """(Cal3DS2 estimate, (9, 9) covariance) of ``camera`` from ``images`` alone (see
         :meth:`_halves`); None without a usable system."""
         s = self.state
-        rows, owner = s.inlier_rows(tracks)
-        keep = np.isin(s.obs_image[rows], images)
-        rows, owner = rows[keep], owner[keep]
-        seen, count = np.unique(owner, return_counts=True)
-        keep = np.isin(owner, seen[count >= 2])
-        rows = rows[keep]
-        if len(rows) == 0:
+        problem, _, _, _ = self._problem(images, tracks, alone=True)
+        if problem is None:
             return None
-        track_ids = s.obs_track[rows]
-        points, point_local = np.unique(track_ids, return_inverse=True)
-        image_local = np.full(len(s.names), -1)
-        image_local[images] = np.arange(len(images))
-        prior = s.priors[camera]
-        problem = BAProblem(
-            camera_models=[prior.model], camera_params=[s.params[camera]], image_camera=np.zeros(len(images), int),
-            rotations=s.R[images], translations=s.t[images], points=s.track_xyz[points],
-            obs_image=image_local[s.obs_image[rows]], obs_point=point_local, obs_xy=s.obs_px[rows],
-            obs_sigma=s.obs_sigma[rows])
         options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
                             max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
         result = bundle_adjust(problem, options)
         log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label, camera,
-                  len(images), len(rows), result.iterations, result.time_s)
+                  len(images), len(problem.obs_image), result.iterations, result.time_s)
         adjusted = replace(problem, camera_params=result.camera_params, rotations=result.rotations,
                            translations=result.translations, points=result.points)
         [step] = calibration_step(adjusted, options)
         if step is None:
             return None
-        return ds2_from_params(prior.model, result.camera_params[0]) + step[0], step[1]
+        return ds2_from_params(s.priors[camera].model, result.camera_params[0]) + step[0], step[1]
 
     def forget_principal_point_tests(self) -> None:
         """Start a new model: its first final BA tests every camera's principal point again."""
@@ -326,12 +311,20 @@ class BundleAdjuster:
         keep = select_tracks(s.obs_image[rows], owner, s.obs_px[rows], sizes, np.minimum(err, 1e6), len(tracks), 0)
         return tracks[keep]
 
-    def _problem(self, free: np.ndarray, tracks: np.ndarray):
+    def _problem(self, free: np.ndarray, tracks: np.ndarray, alone: bool = False):
         """The BA problem of ``tracks`` with the images ``free`` free and the others that see
         them held: ``(problem, image order, number of free images, the state's cameras of its
-        groups)``; ``(None, ...)`` without observations."""
+        groups)``; ``(None, ...)`` without observations.  ``alone``: the images ``free`` by
+        themselves, their observations only and the tracks they see at least twice (the gauge
+        then held by the BA's priors)."""
         s = self.state
-        rows, _ = s.inlier_rows(tracks)
+        rows, owner = s.inlier_rows(tracks)
+        if alone:
+            inside = np.isin(s.obs_image[rows], free)
+            rows, owner = rows[inside], owner[inside]
+            seen, count = np.unique(owner, return_counts=True)
+            twice = np.isin(owner, seen[count >= 2])
+            rows, tracks = rows[twice], tracks[seen[count >= 2]]
         if len(rows) == 0:
             return None, None, 0, None
         images = np.unique(s.obs_image[rows])
