@@ -32,6 +32,7 @@ parts' small spread); the caller re-estimates them with the averaged cameras hel
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import replace
 
@@ -45,6 +46,33 @@ from backend.memory import return_freed_memory
 
 logger = logging.getLogger(__name__)
 _ERROR_ROWS = 1_000_000
+# Peak memory of one GTSAM BA per observation (its factor, linearised Jacobian, share of the
+# elimination and the caller's arrays), rounded up from the peak RSS of the final BA of
+# ``tools/bench_scaling.py``'s largest blocks.
+BYTES_PER_OBSERVATION = 2048
+# Share of the machine's physical memory one BA may take when no budget is given: the rest is
+# the process's model and database, the other workers and the system.
+MEMORY_SHARE = 0.5
+
+
+def physical_memory_bytes() -> int | None:
+    """The machine's physical memory in bytes (POSIX ``sysconf``); None where it is unknown."""
+    try:
+        pages, page_size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+    return int(pages) * int(page_size) if pages > 0 and page_size > 0 else None
+
+
+def observations_in_memory(memory_bytes: int | None = None, share: float = MEMORY_SHARE) -> int:
+    """The most observations one BA holds within ``share`` of ``memory_bytes`` (default: this
+    machine's physical memory); 0 (no limit) where the memory is unknown.  The budget of
+    :func:`bundle_adjust_partitioned`'s callers when the user gives none: split a BA only when
+    one does not fit (module docstring)."""
+    memory_bytes = physical_memory_bytes() if memory_bytes is None else memory_bytes
+    if not memory_bytes:
+        return 0
+    return max(1, int(memory_bytes * share) // BYTES_PER_OBSERVATION)
 
 
 def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOptions = BAOptions(),

@@ -54,6 +54,34 @@ def test_final_ba_split_into_track_parts_when_over_budget(tmp_path, caplog):
     assert "as the consensus of" in caplog.text
 
 
+def test_final_ba_budget_defaults_to_what_the_memory_holds(tmp_path, monkeypatch):
+    """No ``--ba-max-observations``: the budget is ``observations_in_memory()`` of the machine
+    that runs the BA, so a machine whose memory holds 4000 observations splits the same final
+    BAs as ``--ba-max-observations 4000``, and a larger one runs each as one BA."""
+    import sfm.mapper.bundle_adjuster as mapper_ba
+
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=2))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    parts = []
+    original = mapper_ba.bundle_adjust_partitioned
+
+    def spy(problem, num_parts, *args, **kwargs):
+        parts.append(num_parts)
+        return original(problem, num_parts, *args, **kwargs)
+
+    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
+    monkeypatch.setattr(mapper_ba, "observations_in_memory", lambda: 4000)
+    reconstruct_incremental(payload, MapperOptions())
+    small_machine = list(parts)
+    parts.clear()
+    reconstruct_incremental(payload, MapperOptions(ba_max_observations=4000))
+    assert parts == small_machine and max(parts) > 1
+    parts.clear()
+    monkeypatch.setattr(mapper_ba, "observations_in_memory", lambda: 10**9)
+    reconstruct_incremental(payload, MapperOptions())
+    assert set(parts) == {1}
+
+
 def test_two_unrelated_scenes_give_two_models(tmp_path):
     run_synth(tmp_path, SynthOptions(scene="aerial", num_images=20, observations_per_image=500, seed=1))
     [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)

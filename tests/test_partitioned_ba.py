@@ -93,3 +93,16 @@ def test_observation_sigmas_reach_every_part():
     assert rotation_gaps(plain, replace_truth(truth)).max() > 0.05
     with pytest.raises(ValueError, match="obs_sigma"):
         bundle_adjust_partitioned(BAProblem(**start, obs_sigma=sigma[:-1]), num_parts=2, options=OPTIONS)
+
+
+def test_observation_budget_is_half_the_memory_over_the_bytes_per_observation(monkeypatch):
+    """Without a budget, a BA is split only when one would take more than half of the
+    machine's memory: 8 GiB holds 2**32 / 2048 observations; unknown memory means no limit."""
+    import backend.partitioned_ba as partitioned_ba
+
+    assert partitioned_ba.observations_in_memory(8 * 2**30) == 2**32 // partitioned_ba.BYTES_PER_OBSERVATION
+    assert partitioned_ba.observations_in_memory(8 * 2**30, share=0.25) == 2**31 // partitioned_ba.BYTES_PER_OBSERVATION
+    monkeypatch.setattr(partitioned_ba, "physical_memory_bytes", lambda: 24 * 10**9)
+    assert partitioned_ba.observations_in_memory() == 12 * 10**9 // partitioned_ba.BYTES_PER_OBSERVATION
+    monkeypatch.setattr(partitioned_ba, "physical_memory_bytes", lambda: None)
+    assert partitioned_ba.observations_in_memory() == 0

@@ -38,7 +38,8 @@ image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a 
 operation, not a loop over points.  Every BA is a GTSAM factor graph (``backend``) with a robust
 loss, each observation weighed by its keypoint's detection scale; a global BA while the model
 grows optimises a subset of the tracks, and a final BA too large for memory is the consensus of
-BAs over random track parts (``ba_max_observations``).  Defaults are COLMAP's documented ones
+BAs over random track parts (``ba_max_observations``; by default what half of the machine's
+memory holds).  Defaults are COLMAP's documented ones
 (OpenSfM's for ``global_ba_ratio``).
 
 Modules, in reading order:

@@ -19,8 +19,9 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
   ``intrinsics_refinement="auto"`` the principal point too of each camera whose shift from its
   nominal value the model determines (``sfm.mapper.principal_point``, tested before the BA at
   the current state); above
-  ``ba_max_observations`` observations as the consensus of BAs over random track parts
-  (``backend.partitioned_ba``), the points then re-estimated with the cameras held.
+  ``ba_max_observations`` observations (by default as many as fit in half of the machine's
+  memory) as the consensus of BAs over random track parts (``backend.partitioned_ba``), the
+  points then re-estimated with the cameras held.
 
 Stopping rules: Levenberg-Marquardt stops when an iteration lowers the cost by less than
 :data:`GROWING_TOLERANCE` of it in a growing model (later BAs refine again), by less than
@@ -41,7 +42,7 @@ import numpy as np
 from backend.ba_problem import BAOptions, BAProblem
 from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2
 from backend.camera_models import ds2_from_params
-from backend.partitioned_ba import bundle_adjust_partitioned
+from backend.partitioned_ba import bundle_adjust_partitioned, observations_in_memory
 from backend.track_subset import select_tracks
 from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, check_principal_point, confirm_by_halves, split_halves
 from sfm.core import progress
@@ -242,7 +243,8 @@ class BundleAdjuster:
         the track subset of :meth:`_subset`.  None when a half has fewer than
         ``MIN_HALF_IMAGES`` images or its system is singular."""
         s = self.state
-        if self.opts.ba_max_observations and len(s.inlier_rows(tracks)[0]) > 2 * self.opts.ba_max_observations:
+        budget = self._observation_budget()
+        if budget and len(s.inlier_rows(tracks)[0]) > 2 * budget:
             tracks = self._subset(tracks)  # each half within the BA memory budget
         images = free[s.cam_index[free] == camera]
         centers = -np.einsum("nji,nj->ni", s.R[images], s.t[images])
@@ -289,7 +291,7 @@ class BundleAdjuster:
     def _num_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most
         ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
-        budget = self.opts.ba_max_observations
+        budget = self._observation_budget()
         num_rows = len(self.state.inlier_rows(tracks)[0])
         parts = -(-num_rows // budget) if budget > 0 else 1
         if parts > 1:
@@ -297,6 +299,12 @@ class BundleAdjuster:
                      "(ba_max_observations %d); the points are then re-estimated with the cameras held",
                      self.state.payload.label, num_rows, parts, budget)
         return parts
+
+    def _observation_budget(self) -> int:
+        """``ba_max_observations``; None: as many as fit in this machine's memory
+        (``backend.partitioned_ba.observations_in_memory``); 0: no limit."""
+        budget = self.opts.ba_max_observations
+        return observations_in_memory() if budget is None else budget
 
     def _subset(self, tracks: np.ndarray) -> np.ndarray:
         """The tracks a global BA optimises while the model grows: each image's best track in

@@ -51,9 +51,10 @@ class MapperOptions(Options):
     scale_weights: bool = option(
         True, "Weigh each observation by its keypoint's detection scale (sigma max(1, scale / 0.8) px); "
         "off: 1 px everywhere, as COLMAP.")
-    ba_max_observations: int = option(
-        1_000_000, "The most observations one bundle adjustment holds in memory; a larger final BA is the "
-        "consensus of BAs over random track parts. 0: no limit.", min=0)
+    ba_max_observations: int | None = option(
+        None, "The most observations one bundle adjustment holds in memory; a larger final BA is the "
+        "consensus of BAs over random track parts. Default: what half of the machine's memory holds. "
+        "0: no limit.", min=0)
     min_model_size: int = option(3, "Smallest number of registered images kept as a model.", min=2)
     max_num_models: int = option(50, "The most models made from one input.", min=1)
     georegister: bool = option(
