@@ -47,8 +47,8 @@ from backend.memory import return_freed_memory
 logger = logging.getLogger(__name__)
 _ERROR_ROWS = 1_000_000
 # Peak memory of one GTSAM BA per observation (its factor, linearised Jacobian, share of the
-# elimination and the caller's arrays), rounded up from the peak RSS of the final BA of
-# ``tools/bench_scaling.py``'s largest blocks.
+# elimination and the caller's arrays), rounded up from the peak RSS of one final BA over the
+# 2,000-image synthetic aerial block (``graphsfm synth --scene aerial``).
 BYTES_PER_OBSERVATION = 2048
 # Share of the machine's physical memory one BA may take when no budget is given: the rest is
 # the process's model and database, the other workers and the system.
