@@ -32,7 +32,6 @@ parts' small spread); the caller re-estimates them with the averaged cameras hel
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import replace
 
@@ -42,7 +41,7 @@ from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.bundle_adjustment import bundle_adjust
 from backend.camera_models import reprojection_errors
 from backend.geometry import project_to_so3
-from backend.memory import return_freed_memory
+from backend.memory import physical_memory_bytes, return_freed_memory
 
 logger = logging.getLogger(__name__)
 _ERROR_ROWS = 1_000_000
@@ -53,15 +52,6 @@ BYTES_PER_OBSERVATION = 2048
 # Share of the machine's physical memory one BA may take when no budget is given: the rest is
 # the process's model and database, the other workers and the system.
 MEMORY_SHARE = 0.5
-
-
-def physical_memory_bytes() -> int | None:
-    """The machine's physical memory in bytes (POSIX ``sysconf``); None where it is unknown."""
-    try:
-        pages, page_size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
-    except (AttributeError, ValueError, OSError):
-        return None
-    return int(pages) * int(page_size) if pages > 0 and page_size > 0 else None
 
 
 def observations_in_memory(memory_bytes: int | None = None, share: float = MEMORY_SHARE) -> int:

@@ -5,19 +5,9 @@ from __future__ import annotations
 import logging
 import os
 
+from backend.memory import available_memory
+
 logger = logging.getLogger(__name__)
-
-
-def available_memory() -> int | None:
-    """Bytes of memory available to new processes (Linux ``MemAvailable``), or None."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
 
 
 def workers_for_memory(max_image_size: int) -> int:
