@@ -78,8 +78,9 @@ class BAOptions:
         (so no new local minima), yet a 50 px outlier pulls 50x less than under least squares.
         "none" is COLMAP's global-BA default, right when outliers were already filtered.
     refine_intrinsics: "none" | "focal" | "focal_radial" (focal + the model's distortion, the
-        default, as COLMAP) | "all" (principal point too); or one of these per camera group
-        (a sequence as long as ``BAProblem.camera_models``).
+        default, as COLMAP) | "focal_principal" (focal + principal point, the distortion held) |
+        "all" (focal, distortion and principal point); or one of these per camera group (a
+        sequence as long as ``BAProblem.camera_models``).
     gauge_pose: image whose pose anchors the gauge when ``BAProblem.fixed_poses`` is empty (None: the
         first image with observations). Gauge: with no fixed pose, a prior on that pose plus a
         prior on the distance from its centre to the farthest camera centre (the scale); with

@@ -14,9 +14,10 @@ variables; Cal3DS2 reproduces every supported model exactly), and ``Triangulatio
 (point only) for the observations of held images when two or more are held (a local BA). When intrinsics are refined, the
 calibration of each group is ONE variable shared by its images' factors
 (``GeneralSFMFactor2``): ``Cal3Bundler`` (f, k1, k2; principal point constant) for the
-single-focal models refining "focal"/"focal_radial", ``Cal3DS2`` otherwise. Components of the
-calibration that must not move are held by a tight prior (sigma 1e-7 relative) and returned
-exactly as given; fx = fy of single-focal models under "all" is tied by a one-row factor.
+single-focal models whose principal point is held ("focal", "focal_radial"), ``Cal3DS2``
+otherwise. Components of the calibration that must not move are held by a tight prior (sigma
+1e-7 relative) and returned exactly as given; fx = fy of a single-focal model in a Cal3DS2
+variable is tied by a one-row factor.
 The level of refinement may differ between groups (``BAOptions.refine_intrinsics`` per group; a
 group at "none" among refined ones is a calibration variable held whole by its prior).
 :func:`calibration_step` builds the same graph and, without optimising, gives each refined
@@ -76,23 +77,31 @@ def rms(err: Array) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
 
 
-REFINE_LEVELS = ("none", "focal", "focal_radial", "all")
+# What each level refines besides the focal lengths: (the distortion, the principal point).
+_LEVEL_PARTS = {"focal": (False, False), "focal_radial": (True, False), "focal_principal": (False, True),
+                "all": (True, True)}
+REFINE_LEVELS = ("none", *_LEVEL_PARTS)
 
 
 def free_ds2(model: str, refine: str) -> list[int]:
     """Cal3DS2 components refined for ``model`` under ``refine`` (skew never)."""
-    levels = {"focal": 0, "focal_radial": 1, "all": 2}
     if refine == "none":
         return []
-    if refine not in levels:
+    if refine not in _LEVEL_PARTS:
         raise ValueError(f"unknown refine_intrinsics {refine!r}")
-    free = [0, 1] + (_EXTRA_DS2[model] if levels[refine] >= 1 else [])
-    return free + ([3, 4] if levels[refine] == 2 else [])
+    distortion, principal_point = _LEVEL_PARTS[refine]
+    return [0, 1] + (_EXTRA_DS2[model] if distortion else []) + ([3, 4] if principal_point else [])
+
+
+def refine_level(distortion: bool, principal_point: bool) -> str:
+    """The level that refines the focal lengths and, as asked, the distortion and the principal
+    point."""
+    return next(level for level, parts in _LEVEL_PARTS.items() if parts == (distortion, principal_point))
 
 
 def _uses_bundler(model: str, refine: str) -> bool:
     """Cal3Bundler (f, k1, k2 variable; principal point constant) fits, else Cal3DS2."""
-    return model in SINGLE_FOCAL_MODELS and refine != "all"
+    return model in SINGLE_FOCAL_MODELS and not _LEVEL_PARTS.get(refine, (False, False))[1]
 
 
 def _add_calibration(graph, values, key: int, model: str, params: Array, refine: str) -> None:

@@ -68,3 +68,19 @@ def test_the_principal_point_is_pooled_over_the_models_that_refined_it_only():
     held = LocalModel("C1/0", _model([520.0, 319.5, 239.5, -0.02], {"b": 2, "c": 2}, shift=1.0))
     _, both_held = merged_poses([models[0], held], _plan(), sims, nominal)
     np.testing.assert_array_equal(both_held[1][1:3], [319.5, 239.5])
+
+
+def test_the_distortion_is_pooled_over_the_models_that_refined_it_only():
+    """Nominal k = 0: the anchor held it (12 observations), the other model refined it to -0.02
+    (4 observations).  The merged distortion is the refining model's, not a quarter of it; the
+    focal length still pools over both.  With both holding it, it stays nominal."""
+    nominal = {1: np.array([768.0, 319.5, 239.5, 0.0])}
+    anchor = _model([500.0, 319.5, 239.5, 0.0], {"a": 8, "b": 4}, shift=0.0)
+    other = _model([520.0, 319.5, 239.5, -0.02], {"b": 2, "c": 2}, shift=1.0)
+    models = [LocalModel("C0/0", anchor), LocalModel("C1/0", other)]
+    sims = {0: Sim3(), 1: Sim3()}
+    _, params = merged_poses(models, _plan(), sims, nominal)
+    np.testing.assert_allclose(params[1], [(12 * 500.0 + 4 * 520.0) / 16, 319.5, 239.5, -0.02], rtol=0, atol=1e-12)
+    held = LocalModel("C1/0", _model([520.0, 319.5, 239.5, 0.0], {"b": 2, "c": 2}, shift=1.0))
+    _, both_held = merged_poses([models[0], held], _plan(), sims, nominal)
+    assert both_held[1][3] == 0.0

@@ -27,11 +27,13 @@ Design, the loop (``sfm.mapper.incremental``):
    image while the model is young.  A camera whose refined intrinsics leave the range a lens can
    have takes its images out of the model (COLMAP's filter).
 6. When no image registers any more: final BAs to a tighter tolerance, and a new model from the
-   remaining images; several models are a result, not an error.  The final BAs also refine a
-   camera's principal point where the photos determine it (``intrinsics_refinement`` "auto",
-   the default): its shift from the nominal value significant at 3 sigma, its correlation with
-   the other intrinsics below 0.9, and the two halves of its images, each adjusted alone,
-   agreeing on it; elsewhere it is held, as COLMAP always holds it.
+   remaining images; several models are a result, not an error.  The final BAs refine what the
+   photos determine of each camera (``intrinsics_refinement`` "auto", the default): its
+   distortion only when its difference from the nominal values is significant at 3 sigma (held
+   otherwise: a nadir block trades an undetermined distortion for a bent block); its principal
+   point only when its shift from the nominal value is significant at 3 sigma, its correlation
+   with the other intrinsics below 0.9, and the two halves of its images, each adjusted alone,
+   agree on it (held otherwise, as COLMAP always holds it).
 
 Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
 image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised
@@ -57,6 +59,8 @@ Modules, in reading order:
 - ``sfm.mapper.triangulation``: batched DLT, triangulation angles, point refinement.
 - ``sfm.mapper.bundle_adjuster``: ``BundleAdjuster``, which local, global and final BAs move
   what, and when they stop.
+- ``sfm.mapper.distortion``: the test that decides whether a final BA refines a camera's
+  distortion.
 - ``sfm.mapper.principal_point``: the test that decides whether a final BA keeps a camera's
   refined principal point.
 - ``sfm.mapper.output``: the model as a ``Reconstruction``, and the growing model for Rerun.

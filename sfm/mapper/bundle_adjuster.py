@@ -16,9 +16,10 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
   the registered images that share points with them free, every point those free images see,
   the other images that see those points held; its cost grows with the region, not the model.
 - Final BAs of a model: every image and every track, to a tighter tolerance; with
-  ``intrinsics_refinement="auto"`` the principal point too of each camera whose shift from its
-  nominal value the model determines (``sfm.mapper.principal_point``, tested before the BA at
-  the current state); above
+  ``intrinsics_refinement="auto"`` the distortion only of the cameras whose distortion the model
+  determines (``sfm.mapper.distortion``) and the principal point too of each camera whose shift
+  from its nominal value the model determines (``sfm.mapper.principal_point``), both tested
+  before the BA at the current state; above
   ``ba_max_observations`` observations (by default as many as fit in half of the machine's
   memory) as the consensus of BAs over random track parts (``backend.partitioned_ba``), the
   points then re-estimated with the cameras held.
@@ -40,10 +41,11 @@ from dataclasses import replace
 import numpy as np
 
 from backend.ba_problem import BAOptions, BAProblem
-from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2
-from backend.camera_models import ds2_from_params
+from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2, refine_level
+from backend.camera_models import ds2_from_params, model_spec
 from backend.partitioned_ba import bundle_adjust_partitioned, observations_in_memory
 from backend.track_subset import select_tracks
+from sfm.mapper.distortion import check_distortion, distortion_components, hold_components
 from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, check_principal_point, confirm_by_halves, split_halves
 from sfm.core import progress
 from sfm.mapper.state import ROW_CHUNK, MapperState
@@ -179,56 +181,81 @@ class BundleAdjuster:
         return "focal_radial" if level == "auto" else level
 
     def _final_levels(self, free: np.ndarray, tracks: np.ndarray, loss_scale: float) -> list[str]:
-        """What a final BA refines of each camera under "auto": focal length and distortion, and
-        the principal point of the cameras that pass :func:`check_principal_point`, tested at
-        the current state (the Gauss-Newton step a BA freeing it would take, with its
-        covariance, ``backend.bundle_adjustment.calibration_step``) against the camera's nominal
-        principal point.  A camera whose principal point is already off its nominal value passed
-        before (in this model, or in the clusters merged into it) and keeps it free; one the
-        split-sample step held at an earlier final BA of this model stays held, untested again
-        (the first two steps, cheap, run at every final BA).  The first
-        two steps run on the growing model's track subset (:meth:`_subset`: each image's best
-        track per grid cell, so every image and every part of it counts): its covariance is
-        larger than the full problem's, a conservative screen, at the cost of a fraction of the
-        final BA.  The split-sample step (:meth:`_halves`), two BAs of half the images each, runs
-        only for a camera that passed them."""
+        """What a final BA refines of each camera under "auto": the focal length always; the
+        distortion of the cameras that pass :func:`check_distortion` (its estimate with the
+        principal point held) and the principal point of those that pass
+        :func:`check_principal_point`, both tested at the current state (the Gauss-Newton step a
+        BA freeing them would take, with its covariance,
+        ``backend.bundle_adjustment.calibration_step``) against the camera's nominal values.  A
+        camera whose distortion is held goes back to its nominal distortion for the BA.
+
+        A camera whose principal point is already off its nominal value passed before (in this
+        model, or in the clusters merged into it) and keeps it free; one the split-sample step
+        held at an earlier final BA of this model stays held, untested again (the first two
+        steps, cheap, run at every final BA, as does the distortion test).  The tests run on the
+        growing model's track subset (:meth:`_subset`: each image's best track per grid cell, so
+        every image and every part of it counts): its covariance is larger than the full
+        problem's, a conservative screen, at the cost of a fraction of the final BA.  The
+        principal point's split-sample step (:meth:`_halves`), two BAs of half the images each,
+        runs only for a camera that passed its first two steps."""
         s = self.state
         levels = ["focal_radial"] * len(s.priors)
-        untested = []
-        for c in np.unique(s.cam_index[free]):
+        pp_free: dict[int, bool] = {}  # the cameras the tests decide, and whether the principal point is free
+        untested = []  # cameras whose principal point is tested now
+        for c in np.unique(s.cam_index[free]).tolist():
             prior = s.priors[c]
             if prior.fixed:
                 continue
             nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
-            if np.any(nominal[[3, 4]] != current[[3, 4]]):
-                levels[c] = "all"
-            elif int(c) not in self.held_by_halves:
-                untested.append(int(c))
-        if not untested:
+            pp_free[c] = bool(np.any(nominal[[3, 4]] != current[[3, 4]]))
+            if not pp_free[c] and c not in self.held_by_halves:
+                untested.append(c)
+            levels[c] = refine_level(True, pp_free[c])
+        if not untested and not any(distortion_components(s.priors[c].model) for c in pp_free):
             return levels
         problem, _, _, cams = self._problem(free, self._subset(tracks))
         if problem is None:
             return levels
-        trial = tuple("all" if c in untested else "none" for c in cams)
+        trial = tuple("all" if c in untested else "focal_radial" if c in pp_free else "none" for c in cams)
         steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
-        for k, c in enumerate(cams):
-            if c not in untested:
+        for k, c in enumerate(cams.tolist()):
+            if c not in pp_free:
                 continue
             prior = s.priors[c]
-            nominal = ds2_from_params(prior.model, prior.params)
+            nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
             step, cov = steps[k] if steps[k] is not None else (None, None)
-            estimate = ds2_from_params(prior.model, s.params[c]) + (step if step is not None else 0.0)
-            test = check_principal_point(nominal, estimate, cov, free_ds2(prior.model, "all"))
-            if test.accepted:
-                test = confirm_by_halves(test, nominal, self._halves(c, free, tracks, loss_scale))
-                if not test.accepted:
-                    self.held_by_halves.add(int(c))
-            self.principal_point_tests[int(c)] = test
-            log.info("%s: camera %d (%d images): %s", s.payload.label, c,
-                     int(np.sum(s.registered & (s.cam_index == c))), test.summary())
-            if test.accepted:
-                levels[c] = "all"
+            num_images = int(np.sum(s.registered & (s.cam_index == c)))
+            if c in untested:
+                estimate = current + (step if step is not None else 0.0)
+                test = check_principal_point(nominal, estimate, cov, free_ds2(prior.model, "all"))
+                if test.accepted:
+                    test = confirm_by_halves(test, nominal, self._halves(c, free, tracks, loss_scale))
+                    if not test.accepted:
+                        self.held_by_halves.add(c)
+                self.principal_point_tests[c] = test
+                log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, test.summary())
+                pp_free[c] = test.accepted
+                if step is not None:  # the distortion's estimate with the principal point held
+                    try:
+                        step, cov = hold_components(step, cov, free_ds2(prior.model, "all"), [3, 4])
+                    except np.linalg.LinAlgError:
+                        step, cov = None, None
+            distortion = check_distortion(prior.model, nominal, current + (step if step is not None else 0.0), cov)
+            if distortion_components(prior.model):
+                log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
+            if not distortion.accepted:
+                self._hold_distortion(c)
+            levels[c] = refine_level(distortion.accepted, pp_free[c])
         return levels
+
+    def _hold_distortion(self, camera: int) -> None:
+        """Set the camera's distortion parameters back to their nominal values (its prior's)."""
+        s = self.state
+        prior = s.priors[camera]
+        extra = list(model_spec(prior.model).extra_idx)
+        params = s.params[camera].copy()
+        params[extra] = np.asarray(prior.params, float)[extra]
+        s.set_camera_params({s.cam_keys[camera]: params})
 
     def _halves(self, camera: int, free: np.ndarray, tracks: np.ndarray, loss_scale: float):
         """The split-sample step of the principal point test (``principal_point.confirm_by_halves``):

@@ -34,8 +34,8 @@ class MapperOptions(Options):
         1.2, "A global BA runs when the model has grown by this factor (OpenSfM: 1.2).", above=1)
     intrinsics_refinement: str = option(
         "auto", "What global BAs refine of cameras not given: none, focal, focal_radial (COLMAP's), all "
-        "(principal point too), or auto: focal_radial, and the principal point in the final BAs where the "
-        "photos determine it (sfm.mapper.principal_point).",
+        "(principal point too), or auto: focal_radial, but in the final BAs the distortion and the principal "
+        "point only where the photos determine them.",
         choices=("none", "focal", "focal_radial", "all", "auto"))
     refine_given_intrinsics: bool = option(
         False, "Also refine intrinsics given with --intrinsics (held fixed otherwise).")

@@ -9,10 +9,10 @@ model estimated for it, each weighted by the observations that model has in that
 images: independent self-calibrations of parts of the scene pooled as the final bundle
 adjustment would weigh them, so the merged model does not start from the calibration error of
 one cluster (which a final BA split into track parts, ``ba_max_observations``, would keep).
-The principal point is pooled only over the models that refined it (their value is off the
-camera's nominal one, ``sfm.mapper.principal_point``): a model that held it has no estimate of it
-to contribute, and averaging its nominal value in would pull the others' estimate back part of
-the way.
+The principal point and the distortion are each pooled only over the models that refined them
+(their values are off the camera's nominal ones, ``sfm.mapper.principal_point``,
+``sfm.mapper.distortion``): a model that held them has no estimate of them to contribute, and
+averaging its nominal values in would pull the others' estimates back part of the way.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3
     parameters (by camera id) pooled over the models (module docstring): the merged cluster
     ``C_final`` of Alg. 2 (section 3.2.3), before its refinement.  ``nominal``: each camera's
     parameters before any model refined them (the database's), which tell the models that
-    refined its principal point from those that held it; None: pooled over every model."""
+    refined its principal point or distortion from those that held them; None: pooled over
+    every model."""
     poses = {}
     estimates: dict[int, list[tuple[int, np.ndarray]]] = {}  # camera id -> (observations, params) per model
     camera_model: dict[int, str] = {}
@@ -66,9 +67,13 @@ def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3
             w[0] = 1.0
         values = np.stack([p for _, p in found])
         params[cam_id] = (w[:, None] * values).sum(axis=0) / w.sum()
-        if nominal is not None and cam_id in nominal:
-            pp = list(model_spec(camera_model[cam_id]).pp_idx)
-            refined = np.any(values[:, pp] != np.asarray(nominal[cam_id], np.float64)[pp], axis=1) & (w > 0)
+        if nominal is None or cam_id not in nominal:
+            continue
+        spec = model_spec(camera_model[cam_id])
+        for part in (list(spec.pp_idx), list(spec.extra_idx)):
+            if not part:
+                continue
+            refined = np.any(values[:, part] != np.asarray(nominal[cam_id], np.float64)[part], axis=1) & (w > 0)
             if refined.any():
-                params[cam_id][pp] = (w[refined, None] * values[refined][:, pp]).sum(axis=0) / w[refined].sum()
+                params[cam_id][part] = (w[refined, None] * values[refined][:, part]).sum(axis=0) / w[refined].sum()
     return poses, params
