@@ -92,7 +92,7 @@ class _FakeAdjuster:
         self.tolerances.append(tolerance)
         self.last_decrease = self.decrease
 
-    def forget_principal_point_tests(self) -> None:  # a new model: nothing recorded to forget here
+    def forget_calibration_tests(self) -> None:  # a new model: nothing recorded to forget here
         pass
 
 

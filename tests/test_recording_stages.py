@@ -95,6 +95,9 @@ def test_every_stage_is_in_the_recording(runs, run):
         frustums = rec.under(f"/clusters/{label}/model0/cams/", "Pinhole:image_from_camera", "EncodedImage:blob")
         assert len(frustums) >= 3
         assert rec.has(f"/clusters/{label}/unregistered", "TextDocument:text")
+        # what the final BAs refined of the camera, and why (the rendered lens has no distortion)
+        calibration = rec.last(f"/clusters/{label}/model0/calibration", "TextDocument:text")[0]
+        assert "camera 1 (SIMPLE_RADIAL): distortion (" in calibration and "principal point shift (" in calibration
     # merge (several clusters only): the MSD-weighted cluster graph, the models moving
     if run == "many":
         assert len(clusters) >= 3
@@ -118,4 +121,7 @@ def test_every_stage_is_in_the_recording(runs, run):
     tour = rec.last("/tour", "TextDocument:text")[0]
     assert tour.index("## 1. Extract") < tour.index("## 3. Cluster") < tour.index("## 7. The final model")
     assert "Alg. 1" in tour and ("Alg. 2" in tour) == (run == "many")
+    if run == "many":  # the merged model's own self-calibration decisions
+        refine = rec.last("/tour/6_refine", "TextDocument:text")[0]
+        assert "- camera 1 (SIMPLE_RADIAL): distortion (" in refine
     assert rec.blueprints  # the default layout

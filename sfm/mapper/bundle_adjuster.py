@@ -45,7 +45,7 @@ from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2,
 from backend.camera_models import ds2_from_params, model_spec
 from backend.partitioned_ba import bundle_adjust_partitioned, observations_in_memory
 from backend.track_subset import select_tracks
-from sfm.mapper.distortion import check_distortion, distortion_components, hold_components
+from sfm.mapper.distortion import DistortionTest, check_distortion, distortion_components, hold_components
 from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, check_principal_point, confirm_by_halves, split_halves
 from sfm.core import progress
 from sfm.mapper.state import ROW_CHUNK, MapperState
@@ -70,8 +70,9 @@ class BundleAdjuster:
         self.opts = state.opts
         self.last_rms = float("nan")
         self.last_decrease = 0.0
-        # camera index -> the principal point test of the last final BA that ran it
+        # camera index -> the principal point and distortion tests of the last final BA that ran them
         self.principal_point_tests: dict[int, PrincipalPointTest] = {}
+        self.distortion_tests: dict[int, DistortionTest] = {}
         # cameras whose split-sample step held the principal point in this model: not tested again
         self.held_by_halves: set[int] = set()
 
@@ -242,6 +243,7 @@ class BundleAdjuster:
                         step, cov = None, None
             distortion = check_distortion(prior.model, nominal, current + (step if step is not None else 0.0), cov)
             if distortion_components(prior.model):
+                self.distortion_tests[c] = distortion
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
             if not distortion.accepted:
                 self._hold_distortion(c)
@@ -305,10 +307,21 @@ class BundleAdjuster:
             return None
         return ds2_from_params(s.priors[camera].model, result.camera_params[0]) + step[0], step[1]
 
-    def forget_principal_point_tests(self) -> None:
-        """Start a new model: its first final BA tests every camera's principal point again."""
+    def forget_calibration_tests(self) -> None:
+        """Start a new model: its first final BA tests every camera's principal point and
+        distortion again."""
         self.principal_point_tests.clear()
+        self.distortion_tests.clear()
         self.held_by_halves.clear()
+
+    def calibration_report(self) -> list[str]:
+        """What the model's last final BAs decided of each camera they tested, a line per camera
+        (its database id, then each test's summary): for the recording."""
+        s = self.state
+        cameras = sorted(set(self.principal_point_tests) | set(self.distortion_tests))
+        return [f"camera {s.cam_keys[c]} ({s.priors[c].model}): " + "; ".join(
+                    test.summary() for test in (self.distortion_tests.get(c), self.principal_point_tests.get(c)) if test)
+                for c in cameras]
 
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final

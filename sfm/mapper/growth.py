@@ -12,7 +12,8 @@ once shown, stays in the sample while it exists); the poses of all registered im
 every global bundle adjustment moves) only while the model has at most
 :data:`ALL_POSES_UP_TO` images and then whenever it has grown by :data:`ALL_POSES_GROWTH`, and
 after the final refinement: O(n log n) poses for a model of n images, not O(n^2).
-Per model it also keeps, for each image the model left out, why.
+Per model it also keeps, for each image the model left out, why, and what its final bundle
+adjustments refined of each camera.
 """
 
 from __future__ import annotations
@@ -51,8 +52,9 @@ class GrowthStep:
 @dataclass
 class ModelGrowth:
     """One model's attempt: its steps, whether it was kept (``rank`` among the kept models,
-    largest first, as ``clusters/C<k>/<rank>`` is written; -1: too small, dropped) and, for each
-    image of the cluster it does not hold, why (image name -> reason)."""
+    largest first, as ``clusters/C<k>/<rank>`` is written; -1: too small, dropped), for each
+    image of the cluster it does not hold, why (image name -> reason), and what its final
+    bundle adjustments decided to refine of each camera (a line per camera)."""
 
     steps: list[GrowthStep] = field(default_factory=list)
     rank: int = -1
@@ -60,6 +62,7 @@ class ModelGrowth:
     left_out: dict[str, str] = field(default_factory=dict)
     registered: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # at the last step
     all_posed_at: int = 0  # images when the poses of all were last kept
+    calibration: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -103,12 +106,15 @@ class Growth:
             translations=state.t[posed].astype(np.float32), ba_rms_px=float(ba_rms_px),
             points=state.track_xyz[valid].astype(np.float32), colors=self._track_rgb[valid]))
 
-    def close(self, state: MapperState) -> None:
-        """The current model is finished: note why each image outside it is left out."""
+    def close(self, state: MapperState, calibration: list[str] = ()) -> None:
+        """The current model is finished: note why each image outside it is left out, and
+        ``calibration``, what its final BAs refined of each camera
+        (``BundleAdjuster.calibration_report``)."""
         if not self.models or self.models[-1].size:
             return
         model = self.models[-1]
         model.size = int(state.num_registered)
+        model.calibration = list(calibration)
         self._cameras(state)
         for i in np.flatnonzero(~state.registered):
             model.left_out[self.names[i]] = left_out_reason(state, int(i))

@@ -31,14 +31,16 @@ MAX_REFINEMENTS = 5
 
 
 def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],
-                      camera_params: dict[int, np.ndarray]) -> Reconstruction:
+                      camera_params: dict[int, np.ndarray], calibration: list[str] | None = None) -> Reconstruction:
     """Global refinement of merged poses (paper Figure 1, after merging; section 3): every
     track of the payload is triangulated with the given ``cam_from_world`` poses (by image
     name) and camera parameters (by camera id), then global BA and filtering alternate with
     re-triangulation (:func:`alternate_until_converged`).  Images without a pose stay
     unregistered.  These BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
     the merged clusters' own global BAs do (``MapperOptions.global_loss_scale``): the merged
-    tracks were filtered against poses moved by similarity transforms, not by a BA over them."""
+    tracks were filtered against poses moved by similarity transforms, not by a BA over them.
+    ``calibration``: a list that receives what the BAs refined of each camera, a line per
+    camera (``BundleAdjuster.calibration_report``)."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # nothing would register the dropped images again
     state.release_pairs()
@@ -49,6 +51,8 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     adjuster = BundleAdjuster(state)
     state.retriangulate()
     alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
+    if calibration is not None:
+        calibration.extend(adjuster.calibration_report())
     return to_reconstruction(state)
 
 

@@ -140,21 +140,24 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     return_freed_memory()
 
     recorder.stage("refine")
-    finals = []
+    finals, calibrations = [], []
     payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) for _, p, _ in components],
                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                                min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
     for k, (plan, poses, params) in enumerate(components):
         progress.stage("merge", f"final BA of model {k + 1} of {len(components)}")
         with progress.bar_for("final_ba", f"final BA ({len(poses)} images)", "it"):
-            final = refine_with_poses(payloads[k], mapper_options, poses, params)  # read here, held by it alone
+            calibration: list[str] = []
+            final = refine_with_poses(payloads[k], mapper_options, poses, params, calibration)  # read here, held by it alone
         if len(final.images) >= mapper_options.smallest_model(payloads.sizes[k]):
             finals.append(final)
-    finals.sort(key=lambda m: -len(m.images))
+            calibrations.append(calibration)
+    order = sorted(range(len(finals)), key=lambda k: -len(finals[k].images))
+    finals, calibrations = [finals[k] for k in order], [calibrations[k] for k in order]
     registrations = georegister_models(finals, workspace / DATABASE, mapper_options)
     written = write_models(finals, workspace / "sparse", registrations)
     if recorder.enabled:
-        recorder.tour("refine", refine_text(written, local_points))
+        recorder.tour("refine", refine_text(written, local_points, calibrations[0] if calibrations else []))
         recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
         log_final_models(recorder, finals, len(payloads.images), mapper_options)
     t_ba = time.perf_counter() - t0 - t_merge

@@ -4,8 +4,9 @@ The cluster's :class:`sfm.mapper.growth.Growth` (made wherever the cluster ran) 
 in the main process, on the ``registration`` timeline (the number of registered images):
 ``clusters/<C>/model<m>/cams/<name>`` (pose at every step, frustum and image from the step that
 registered it), ``clusters/<C>/model<m>/points`` (the sample of points, in their colours) and
-``clusters/<C>/model<m>/ba_rms_px`` (the last bundle adjustment's RMS reprojection error); a
-model attempt too small to keep is ``clusters/<C>/dropped<a>``.  ``clusters/<C>/unregistered``
+``clusters/<C>/model<m>/ba_rms_px`` (the last bundle adjustment's RMS reprojection error),
+``clusters/<C>/model<m>/calibration`` (what its final bundle adjustments refined of each camera,
+and why); a model attempt too small to keep is ``clusters/<C>/dropped<a>``.  ``clusters/<C>/unregistered``
 says why each image in no model was left out; ``clusters/<C>/error`` why a cluster failed.
 """
 
@@ -63,6 +64,9 @@ def log_growth(recorder: Recorder, growth) -> int:
         if rms:
             recorder.send_columns(f"{prefix}/ba_rms_px", "registration", [k for k, _ in rms],
                                   rr.Scalars.columns(scalars=[x for _, x in rms]))
+        if model.calibration:
+            recorder.log(f"{prefix}/calibration", rr.TextDocument(calibration_text(model.calibration),
+                                                                  media_type=rr.MediaType.MARKDOWN))
     recorder.clear_time("registration")
     left_out = list(_left_out(growth))
     lines = [f"| {name} | {reason} |" for name, reason in left_out]
@@ -73,6 +77,12 @@ def log_growth(recorder: Recorder, growth) -> int:
     if label not in recorder.views["clusters"]:
         recorder.views["clusters"].append(label)
     return len(left_out)
+
+
+def calibration_text(lines: list[str]) -> str:
+    """Markdown of a model's self-calibration decisions (``BundleAdjuster.calibration_report``)."""
+    return ("What the final bundle adjustments refined of each camera (`sfm.mapper.distortion`, "
+            "`sfm.mapper.principal_point`):\n\n" + "\n".join(f"- {line}" for line in lines))
 
 
 def _left_out(growth):

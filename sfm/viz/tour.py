@@ -151,6 +151,8 @@ choose incremental SfM", in parallel; bounded clusters keep every bundle adjustm
 **In the recording.** On the `registration` timeline, `clusters/<C>/model<m>/`: the cameras as
 frustums with their images (`cams/<name>`), a sample of the points (`points`) and the RMS
 reprojection error after each bundle adjustment (`ba_rms_px`), one step per registered image;
+`clusters/<C>/model<m>/calibration` what the final bundle adjustments refined of each camera (the
+distortion and the principal point only where the photos determine them) and why;
 `clusters/<C>/unregistered` lists the images left out and why.
 """
 
@@ -198,14 +200,18 @@ the layer it merges in.
 """
 
 
-def refine_text(models: list[dict], before_points: int) -> str:
-    """Stage 6: re-triangulation and the final bundle adjustment of the merged model."""
+def refine_text(models: list[dict], before_points: int, calibration: list[str] = ()) -> str:
+    """Stage 6: re-triangulation and the final bundle adjustment of the merged model;
+    ``calibration``: what it refined of each camera (``BundleAdjuster.calibration_report``)."""
     first = models[0] if models else {}
+    cameras = "".join(f"\n- {line}" for line in calibration)
+    cameras = (f"\n\nOf each camera the bundle adjustments refined the focal length, and the distortion and "
+               f"the principal point only where the photos determine them:{cameras}" if cameras else "")
     return f"""## 6. Refine: one bundle adjustment over the merged model
 
 **What it does.** With every camera in the anchor's frame, all tracks of the scene are
-triangulated again and one global bundle adjustment refines all cameras and points (a second one
-when re-triangulation added more than 2% of the observations).
+triangulated again and a global bundle adjustment refines all cameras and points; the two
+alternate until re-triangulation changes almost nothing (COLMAP's global refinement).
 
 **Paper.** Figure 1's last step: after merging, a final bundle adjustment ("in practice, it is
 enough to perform them once").
@@ -213,7 +219,7 @@ enough to perform them once").
 **This run.** The local models held {before_points} points together (shared ones counted once per
 model); the refined model has {first.get('registered', 0)} registered images, {first.get('points', 0)} points,
 mean reprojection error {first.get('mean_reprojection_error', float('nan')):.3f} px,
-mean track length {first.get('mean_track_length', float('nan')):.2f}.
+mean track length {first.get('mean_track_length', float('nan')):.2f}.{cameras}
 """
 
 
