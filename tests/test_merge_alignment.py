@@ -50,37 +50,36 @@ def test_a_camera_no_model_observes_keeps_the_parameters_nearest_the_anchor():
     np.testing.assert_allclose(params[1], [500.0, 320.0, 240.0, 0.0])
 
 
+NOMINAL = {1: np.array([768.0, 319.5, 239.5, 0.0])}  # the database's camera: no distortion, the image centre
+
+
+def _merge_two(anchor_params, other_params, nominal=NOMINAL) -> np.ndarray:
+    """Camera 1's merged parameters from an anchor with 12 observations in its images and a
+    second model with 4."""
+    models = [LocalModel("C0/0", _model(anchor_params, {"a": 8, "b": 4}, shift=0.0)),
+              LocalModel("C1/0", _model(other_params, {"b": 2, "c": 2}, shift=1.0))]
+    _, params = merged_poses(models, _plan(), {0: Sim3(), 1: Sim3()}, nominal)
+    return params[1]
+
+
 def test_the_principal_point_is_pooled_over_the_models_that_refined_it_only():
-    """Nominal (319.5, 239.5): the anchor held it (12 observations), the other model refined it to
-    (302, 247) (4 observations).  Focal length and distortion pool over both; the principal point
-    is the refining model's alone, not a mean pulled three quarters of the way back to the
-    centre.  With both holding it, it stays nominal; without ``nominal`` every model counts."""
-    nominal = {1: np.array([768.0, 319.5, 239.5, 0.0])}
-    anchor = _model([500.0, 319.5, 239.5, 0.01], {"a": 8, "b": 4}, shift=0.0)
-    other = _model([520.0, 302.0, 247.0, -0.02], {"b": 2, "c": 2}, shift=1.0)
-    models = [LocalModel("C0/0", anchor), LocalModel("C1/0", other)]
-    sims = {0: Sim3(), 1: Sim3()}
-    _, params = merged_poses(models, _plan(), sims, nominal)
-    np.testing.assert_allclose(params[1], [(12 * 500.0 + 4 * 520.0) / 16, 302.0, 247.0, (12 * 0.01 - 4 * 0.02) / 16],
-                               rtol=0, atol=1e-12)
-    _, pooled_all = merged_poses(models, _plan(), sims)
-    np.testing.assert_allclose(pooled_all[1][1:3], [(12 * 319.5 + 4 * 302.0) / 16, (12 * 239.5 + 4 * 247.0) / 16])
-    held = LocalModel("C1/0", _model([520.0, 319.5, 239.5, -0.02], {"b": 2, "c": 2}, shift=1.0))
-    _, both_held = merged_poses([models[0], held], _plan(), sims, nominal)
-    np.testing.assert_array_equal(both_held[1][1:3], [319.5, 239.5])
+    """The anchor held it (12 observations), the other model refined it to (302, 247) (4
+    observations).  Focal length and distortion pool over both; the principal point is the
+    refining model's alone, not a mean pulled three quarters of the way back to the centre.  With
+    both holding it, it stays nominal; without ``nominal`` every model counts."""
+    anchor, other = [500.0, 319.5, 239.5, 0.01], [520.0, 302.0, 247.0, -0.02]
+    np.testing.assert_allclose(_merge_two(anchor, other),
+                               [(12 * 500.0 + 4 * 520.0) / 16, 302.0, 247.0, (12 * 0.01 - 4 * 0.02) / 16], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(_merge_two(anchor, other, nominal=None)[1:3],
+                               [(12 * 319.5 + 4 * 302.0) / 16, (12 * 239.5 + 4 * 247.0) / 16])
+    np.testing.assert_array_equal(_merge_two(anchor, [520.0, 319.5, 239.5, -0.02])[1:3], [319.5, 239.5])
 
 
 def test_the_distortion_is_pooled_over_the_models_that_refined_it_only():
-    """Nominal k = 0: the anchor held it (12 observations), the other model refined it to -0.02
-    (4 observations).  The merged distortion is the refining model's, not a quarter of it; the
-    focal length still pools over both.  With both holding it, it stays nominal."""
-    nominal = {1: np.array([768.0, 319.5, 239.5, 0.0])}
-    anchor = _model([500.0, 319.5, 239.5, 0.0], {"a": 8, "b": 4}, shift=0.0)
-    other = _model([520.0, 319.5, 239.5, -0.02], {"b": 2, "c": 2}, shift=1.0)
-    models = [LocalModel("C0/0", anchor), LocalModel("C1/0", other)]
-    sims = {0: Sim3(), 1: Sim3()}
-    _, params = merged_poses(models, _plan(), sims, nominal)
-    np.testing.assert_allclose(params[1], [(12 * 500.0 + 4 * 520.0) / 16, 319.5, 239.5, -0.02], rtol=0, atol=1e-12)
-    held = LocalModel("C1/0", _model([520.0, 319.5, 239.5, 0.0], {"b": 2, "c": 2}, shift=1.0))
-    _, both_held = merged_poses([models[0], held], _plan(), sims, nominal)
-    assert both_held[1][3] == 0.0
+    """The anchor held k at its nominal 0 (12 observations), the other model refined it to
+    -0.02 (4 observations).  The merged distortion is the refining model's, not a quarter of it;
+    the focal length still pools over both.  With both holding it, it stays nominal."""
+    anchor = [500.0, 319.5, 239.5, 0.0]
+    np.testing.assert_allclose(_merge_two(anchor, [520.0, 319.5, 239.5, -0.02]),
+                               [(12 * 500.0 + 4 * 520.0) / 16, 319.5, 239.5, -0.02], rtol=0, atol=1e-12)
+    assert _merge_two(anchor, [520.0, 319.5, 239.5, 0.0])[3] == 0.0
