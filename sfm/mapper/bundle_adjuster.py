@@ -218,6 +218,7 @@ class BundleAdjuster:
         if problem is None:
             return levels
         trial = tuple("all" if c in untested else "focal_radial" if c in pp_free else "none" for c in cams)
+        held_distortion: dict[int, np.ndarray] = {}  # camera key -> its parameters with the nominal distortion
         steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
         for k, c in enumerate(cams.tolist()):
             if c not in pp_free:
@@ -245,19 +246,14 @@ class BundleAdjuster:
             if distortion_components(prior.model):
                 self.distortion_tests[c] = distortion
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
-            if not distortion.accepted:
-                self._hold_distortion(c)
+            if not distortion.accepted and distortion_components(prior.model):
+                extra = list(model_spec(prior.model).extra_idx)
+                held_distortion[s.cam_keys[c]] = s.params[c].copy()
+                held_distortion[s.cam_keys[c]][extra] = np.asarray(prior.params, float)[extra]
             levels[c] = refine_level(distortion.accepted, pp_free[c])
+        if held_distortion:
+            s.set_camera_params(held_distortion)  # one update of the normalised coordinates
         return levels
-
-    def _hold_distortion(self, camera: int) -> None:
-        """Set the camera's distortion parameters back to their nominal values (its prior's)."""
-        s = self.state
-        prior = s.priors[camera]
-        extra = list(model_spec(prior.model).extra_idx)
-        params = s.params[camera].copy()
-        params[extra] = np.asarray(prior.params, float)[extra]
-        s.set_camera_params({s.cam_keys[camera]: params})
 
     def _halves(self, camera: int, free: np.ndarray, tracks: np.ndarray, loss_scale: float):
         """The split-sample step of the principal point test (``principal_point.confirm_by_halves``):

@@ -76,6 +76,10 @@ class MapperState:
                 if opts.scale_weights and kp.shape[1] == 3:
                     self.obs_sigma[rows] = localization_sigma(kp[:, 2])
         self.obs_norm = np.zeros_like(self.obs_px)
+        cams = self.cam_index[self.obs_image]  # the rows of each camera, grouped once
+        order = np.argsort(cams, kind="stable")
+        bounds = np.searchsorted(cams[order], np.arange(len(self.priors) + 1))
+        self._camera_rows = [order[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
         self._update_normalised()
         self.num_tracks = tracks.num_tracks
         self.used = np.zeros(n, dtype=bool)  # belongs to a finished model
@@ -115,10 +119,10 @@ class MapperState:
     def set_camera_params(self, params_by_key: dict[int, np.ndarray]) -> None:
         """Intrinsics of the cameras named by key (``cam_keys``) from outside the model (the
         merged clusters' cameras); normalised coordinates follow."""
-        for c, key in enumerate(self.cam_keys):
-            if key in params_by_key:
-                self.params[c] = np.asarray(params_by_key[key], dtype=np.float64)
-        self._update_normalised()
+        changed = [c for c, key in enumerate(self.cam_keys) if key in params_by_key]
+        for c in changed:
+            self.params[c] = np.asarray(params_by_key[self.cam_keys[c]], dtype=np.float64)
+        self._update_normalised(changed)
 
     def set_poses(self, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
         """Register the named images with the given ``cam_from_world`` poses (the merged
@@ -142,18 +146,19 @@ class MapperState:
         if cams is not None:
             for c, p in zip(cams, camera_params):
                 self.params[c] = np.asarray(p, dtype=np.float64)
-            self._update_normalised()
+            self._update_normalised(cams)
 
     def close_model(self) -> None:
         self.used |= self.registered
         self._reset_model()
 
-    def _update_normalised(self) -> None:
-        cams = self.cam_index[self.obs_image]
-        for c, prior in enumerate(self.priors):
-            rows = np.flatnonzero(cams == c)
+    def _update_normalised(self, cameras=None) -> None:
+        """The normalised coordinates of the rows of ``cameras`` (None: every camera) from their
+        current intrinsics."""
+        for c in range(len(self.priors)) if cameras is None else cameras:
+            rows = self._camera_rows[c]
             if len(rows):
-                self.obs_norm[rows] = unproject(prior.model, self.params[c], self.obs_px[rows])
+                self.obs_norm[rows] = unproject(self.priors[c].model, self.params[c], self.obs_px[rows])
 
     def camera_of(self, i: int):
         return self.priors[self.cam_index[i]]
