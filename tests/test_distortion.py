@@ -66,13 +66,14 @@ def test_the_opencv_model_is_tested_jointly_with_the_correlations():
     assert test.accepted == (expected > significance_chi2(4))
 
 
-def test_without_a_covariance_or_with_a_singular_one_the_nominal_values_are_held():
+def test_without_a_covariance_or_with_a_singular_one_the_distortion_is_refined_as_colmap_does():
+    """Only a covariance can show the distortion undetermined; without one, COLMAP's choice."""
     estimate = NOMINAL.copy()
-    estimate[5] = 0.1
-    assert check_distortion("SIMPLE_RADIAL", NOMINAL, estimate, None).reason == "no covariance"
-    singular = np.zeros((9, 9))
-    test = check_distortion("SIMPLE_RADIAL", NOMINAL, estimate, singular)
-    assert not test.accepted and test.reason == "singular covariance"
+    estimate[5] = 0.001
+    test = check_distortion("SIMPLE_RADIAL", NOMINAL, estimate, None)
+    assert test.accepted and test.reason == "no covariance: refined as COLMAP does"
+    test = check_distortion("SIMPLE_RADIAL", NOMINAL, estimate, np.zeros((9, 9)))
+    assert test.accepted and test.reason == "singular covariance: refined as COLMAP does"
 
 
 def test_holding_components_solves_the_normal_equations_of_the_rest():

@@ -4,7 +4,7 @@
                                      [--baseline COMMIT] [--seeds 0 1 2] [--repeat 1] [--workers 2]
 
 For each set, the database is made once (``DIR/data/<set>``, by this checkout's code): the demo's
-rendered scene (30 views, seed 0) and the real ``lund_door`` and ``temple_ring`` photos (from
+rendered scene (30 views, seed 0; ``demo-dK``: rendered with seed K) and the real ``lund_door`` and ``temple_ring`` photos (from
 ``--data``) are extracted and matched with default options; the aerial sets are
 ``graphsfm synth --scene aerial --images N --outlier-ratio 0.2 --seed 0`` (``aerialN-dK``: ``--seed K``,
 another draw of the same block).  Then each variant
@@ -40,6 +40,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SETS = {  # name: (max cluster size, how the database is made)
     "demo": 12,
+    # Other renders of the demo's facade (``-dK``: rendered with seed K): its texture, the camera
+    # arc's jitter and so the features differ, and the merged models' errors with them.
+    "demo-d1": 12,
+    "demo-d2": 12,
     "lund_door": 5,
     "temple_ring": 15,
     "aerial500": 100,
@@ -95,8 +99,8 @@ def current_code(out: Path) -> Path:
 def make_data(out: Path, name: str, data_root: Path) -> tuple[Path, Path]:
     """``(database, GT table)`` of a set, made once by this checkout."""
     folder = out / "data" / name
-    gt = {"demo": folder / "scene" / "gt", "lund_door": data_root / name / "gt",
-          "temple_ring": data_root / name / "gt"}.get(name, folder / "gt") / "cameras_gt_opencv.txt"
+    gt = (folder / "scene" / "gt" if name.startswith("demo") else data_root / name / "gt"
+          if name in ("lund_door", "temple_ring") else folder / "gt") / "cameras_gt_opencv.txt"
     if (folder / "database.db").exists() and (folder / "done").exists():
         return folder / "database.db", gt
     shutil.rmtree(folder, ignore_errors=True)
@@ -114,11 +118,12 @@ def make_data(out: Path, name: str, data_root: Path) -> tuple[Path, Path]:
         from sfm.stages.extract import run_extract
         from sfm.stages.match import run_match
 
-        if name == "demo":  # the scene of `graphsfm demo`: its default 30 views and seed 0
+        if name.startswith("demo"):  # the scene of `graphsfm demo`: its default 30 views, seed 0 (-dK: seed K)
             from sfm.synthetic.options import RenderOptions
             from sfm.synthetic.rendered import write_rendered_scene
 
-            images = Path(write_rendered_scene(folder / "scene", RenderOptions(num_images=30, seed=0))["image_dir"])
+            draw = int(name.partition("-d")[2] or 0)
+            images = Path(write_rendered_scene(folder / "scene", RenderOptions(num_images=30, seed=draw))["image_dir"])
         else:
             images = data_root / name / "images"
         run_extract(images, folder, ExtractOptions())

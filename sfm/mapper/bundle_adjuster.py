@@ -219,6 +219,8 @@ class BundleAdjuster:
             return levels
         trial = tuple("all" if c in untested else "focal_radial" if c in pp_free else "none" for c in cams)
         held_distortion: dict[int, np.ndarray] = {}  # camera key -> its parameters with the nominal distortion
+        # None where the system is singular (images joined to the rest by too few tracks): the
+        # tests then keep COLMAP's choice (principal point held, distortion refined).
         steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
         for k, c in enumerate(cams.tolist()):
             if c not in pp_free:

@@ -20,7 +20,8 @@ uncertainty explains, ``d^T C^-1 d`` above the chi-square quantile of as many de
 as the model has distortion parameters at 99.73% (the two-sided 3-sigma level), with ``C`` their
 covariance from the BA (:func:`backend.bundle_adjustment.calibration_step`: poses and points
 marginalised out, scaled by the a-posteriori variance factor).  Otherwise the camera keeps its
-nominal distortion in that BA.  The estimate and covariance are those of COLMAP's camera model,
+nominal distortion in that BA.  Without a covariance (a singular system) nothing shows the
+distortion undetermined, and it is refined, as COLMAP does.  The estimate and covariance are those of COLMAP's camera model,
 the principal point held where it is (:func:`hold_components`): the distortion is the first
 additional parameter a camera gets, and the principal point is tested after it
 (``sfm.mapper.principal_point``).  Freeing the principal point too would widen the distortion's
@@ -98,7 +99,8 @@ class DistortionTest:
 def check_distortion(model: str, nominal_ds2: np.ndarray, estimate_ds2: np.ndarray,
                      covariance: np.ndarray | None) -> DistortionTest:
     """The test (module docstring) of an estimate against the nominal value, both Cal3DS2
-    vectors, with the estimate's (9, 9) covariance (None: not available, held).  A model
+    vectors, with the estimate's (9, 9) covariance.  Without a usable covariance (None, or
+    singular) nothing shows the distortion undetermined: refined, as COLMAP does.  A model
     without distortion parameters has nothing to hold: accepted."""
     comps = distortion_components(model)
     if not comps:
@@ -107,15 +109,17 @@ def check_distortion(model: str, nominal_ds2: np.ndarray, estimate_ds2: np.ndarr
     threshold = significance_chi2(len(comps))
     nan = tuple(float("nan") for _ in comps)
     if covariance is None:
-        return DistortionTest(False, tuple(shift), nan, float("nan"), threshold, "no covariance")
+        return DistortionTest(True, tuple(shift), nan, float("nan"), threshold, "no covariance: refined as COLMAP does")
     cov = np.asarray(covariance, float)[np.ix_(comps, comps)]
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    singular = DistortionTest(True, tuple(shift), tuple(std), float("nan"), threshold,
+                              "singular covariance: refined as COLMAP does")
     if not np.all(np.isfinite(cov)) or np.any(std <= 0):
-        return DistortionTest(False, tuple(shift), tuple(std), float("nan"), threshold, "singular covariance")
+        return singular
     try:
         chi2 = float(shift @ np.linalg.solve(cov, shift))
     except np.linalg.LinAlgError:
-        return DistortionTest(False, tuple(shift), tuple(std), float("nan"), threshold, "singular covariance")
+        return singular
     if chi2 <= threshold:
         return DistortionTest(False, tuple(shift), tuple(std), chi2, threshold, "not significant")
     return DistortionTest(True, tuple(shift), tuple(std), chi2, threshold, "significant")
