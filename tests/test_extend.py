@@ -30,9 +30,16 @@ from graph.merge_plan import plan_merges
 from sfm.evaluation.ground_truth import read_gt_table
 from sfm.evaluation.metrics import evaluate
 from sfm.io.colmap_model import read_model
+from sfm.mapper.bundle_adjuster import BundleAdjuster
+from sfm.mapper.options import MapperOptions
+from sfm.mapper.state import MapperState
 from sfm.matching.pairs import extension_pairs
-from sfm.synthetic.options import RenderOptions
+from sfm.merge.extension import FULL_BA_REGION_SHARE, refine_extension
+from sfm.stages.payloads import ClusterPayloads
+from sfm.synthetic.matching import simulate_matching, write_database
+from sfm.synthetic.options import RenderOptions, SynthOptions
 from sfm.synthetic.rendered import write_rendered_scene
+from sfm.synthetic.scenes import gt_reconstruction, make_scene
 
 NUM_OLD, NUM_NEW = 10, 6
 ARGS = ["--seed", "0", "--no-recording"]
@@ -247,3 +254,40 @@ def test_a_commit_cut_between_its_renames_is_completed(scene):
     log = cli("extend", "--images", str(scene["new"]), "--workspace", str(ws)).stderr
     assert "completing the replacement" in log and "skipped" in log
     assert files(ws / "sparse") == files(scene["extended"] / "sparse")
+
+
+def _street_extension(tmp_path: Path, num_new: int) -> tuple:
+    """``refine_extension`` on a 60-image street with exact poses (as if merged), its last
+    ``num_new`` images new: the refined model, the poses and the names in the new images' region."""
+    opts = SynthOptions(scene="street", num_images=60, observations_per_image=400, seed=2)
+    scene = make_scene(opts)
+    write_database(scene, simulate_matching(scene, opts), tmp_path / "database.db", camera_model="SIMPLE_RADIAL")
+    truth = gt_reconstruction(scene)
+    poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation) for im in truth.images.values()}
+    new = sorted(poses)[len(poses) - num_new:]
+    [payload] = ClusterPayloads(tmp_path / "database.db", [sorted(poses)], fixed_intrinsics=False, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    state.set_poses(poses)
+    state.retriangulate()
+    region = {state.names[i] for i in BundleAdjuster(state).region_images(
+        np.array([i for i, n in enumerate(state.names) if n in new]))}
+    params = {cam_id: np.asarray(cam.params, float) for cam_id, cam in truth.cameras.items()}
+    recon = refine_extension(payload, MapperOptions(), poses, params, set(new))
+    return recon, poses, region
+
+
+@pytest.mark.parametrize("num_new, global_ba", [(3, False), (24, True)])
+def test_an_extension_bundle_adjusts_its_region_or_when_that_is_most_of_the_model_all_of_it(
+        tmp_path, num_new, global_ba):
+    """A street of 60 images extended at its end: 3 new images free a region of a few images
+    and the images beyond it keep their poses exactly; 24 free a region of at least
+    ``FULL_BA_REGION_SHARE`` of the model, and the global BA moves every image."""
+    recon, poses, region = _street_extension(tmp_path, num_new)
+    assert (len(region) >= FULL_BA_REGION_SHARE * 60) == global_ba
+    assert len(recon.registered_image_ids) == 60
+    moved = {im.name for im in recon.images.values()
+             if not np.array_equal(im.cam_from_world_translation, poses[im.name][1])}
+    if global_ba:
+        assert moved == set(poses)
+    else:
+        assert moved <= region and len(region) < 30

@@ -15,10 +15,13 @@ from sfm.evaluation.ground_truth import gt_from_reconstruction
 from sfm.evaluation.metrics import evaluate
 from sfm.execution.local import LocalExecutor
 from sfm.io.colmap_model import read_model
+from sfm.io.database import Database
 from sfm.mapper.principal_point import (MAX_CORRELATION, SIGNIFICANCE_CHI2, check_principal_point, confirm_by_halves,
                                         split_halves)
 from sfm.mapper.options import MapperOptions
+from sfm.merge.extension import refine_extension
 from sfm.stages.map import run_map
+from sfm.stages.payloads import ClusterPayloads
 from sfm.synthetic.matching import simulate_matching, write_database
 from sfm.synthetic.options import SynthOptions
 from sfm.synthetic.scenes import gt_reconstruction, make_scene
@@ -169,3 +172,33 @@ def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, capl
     [held], [auto] = models["focal_radial"].cameras.values(), models["auto"].cameras.values()
     np.testing.assert_array_equal(auto.params[1:3], held.params[1:3])
     assert auto.params[1:3].tolist() == [(scene.width - 1) / 2, (scene.height - 1) / 2]
+
+
+def test_an_extensions_global_ba_tests_a_principal_point_that_passed_before_again(tmp_path):
+    """An extension whose new images make up much of the model runs the global BA with every
+    camera's self-calibration decided again (``sfm.merge.extension``): a principal point a
+    smaller model had freed (here 4 px off the centre the data show) goes back to its nominal
+    value when the whole model does not find it significant, and one the whole model does find
+    (the orbit's keypoints moved by (20, -12) px) stays refined and is found within 1.5 px."""
+    opts = SynthOptions(scene="orbit", num_images=16, observations_per_image=800, seed=3)
+    scene = make_scene(opts)
+    pairs = simulate_matching(scene, opts)
+    truth = gt_reconstruction(scene)
+    poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation) for im in truth.images.values()}
+    new = set(sorted(poses)[8:])
+    centre = np.array([(scene.width - 1) / 2, (scene.height - 1) / 2])
+    found = {}
+    for shift in ((0.0, 0.0), (20.0, -12.0)):
+        db = tmp_path / f"{shift[0]:.0f}.db"
+        moved = replace(scene, keypoints=[k + np.array(shift) for k in scene.keypoints])
+        write_database(moved, pairs, db, camera_model="SIMPLE_RADIAL")
+        [payload] = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=False, min_inliers=15)
+        with Database(db, readonly=True) as database:
+            [(cam_id, cam)] = database.read_cameras().items()
+        params = np.array(cam.params, float)
+        params[1:3] = centre + np.array(shift) + [4.0, -3.0]  # passed in a smaller model, 5 px off
+        recon = refine_extension(payload, MapperOptions(intrinsics_refinement="auto"), poses, {cam_id: params}, new)
+        assert len(recon.registered_image_ids) == 16
+        found[shift] = np.asarray(recon.cameras[cam_id].params)[1:3] - centre
+    np.testing.assert_array_equal(found[0.0, 0.0], [0.0, 0.0])      # tested again, held at the nominal value
+    np.testing.assert_allclose(found[20.0, -12.0], [20.0, -12.0], atol=1.5)

@@ -75,6 +75,8 @@ class BundleAdjuster:
         self.distortion_tests: dict[int, DistortionTest] = {}
         # cameras whose split-sample step held the principal point in this model: not tested again
         self.held_by_halves: set[int] = set()
+        # cameras whose principal point is to be tested again although it passed before (retest_calibration)
+        self._retest: set[int] = set()
 
     # ------------------------------------------------------------------ the three kinds
     def local(self, i: int) -> None:
@@ -135,11 +137,9 @@ class BundleAdjuster:
         s = self.state
         images = np.asarray(images, dtype=np.int64)
         images = images[s.registered[images]]
-        if len(images) == 0:
+        free = self.region_images(images)
+        if len(free) == 0:
             return np.zeros(0, np.int64)
-        seen = np.unique(s.obs_track[np.concatenate([s.image_rows[i] for i in images])])
-        rows, _ = s.inlier_rows(seen[s.track_valid[seen]])
-        free = np.union1d(images, np.unique(s.obs_image[rows]))
         own = np.concatenate([s.image_rows[i] for i in free])
         tracks = np.unique(s.obs_track[own[s.obs_inlier[own]]])
         tracks = tracks[s.track_valid[tracks]]
@@ -158,6 +158,18 @@ class BundleAdjuster:
         s.drop_degenerate_cameras()
         s.filter_observations(tracks)
         return tracks
+
+    def region_images(self, images: np.ndarray) -> np.ndarray:
+        """The images :meth:`region` frees around ``images``: those of them registered and the
+        registered images that share an inlier point with them."""
+        s = self.state
+        images = np.asarray(images, dtype=np.int64)
+        images = images[s.registered[images]]
+        if len(images) == 0:
+            return np.zeros(0, np.int64)
+        seen = np.unique(s.obs_track[np.concatenate([s.image_rows[i] for i in images])])
+        rows, _ = s.inlier_rows(seen[s.track_valid[seen]])
+        return np.union1d(images, np.unique(s.obs_image[rows]))
 
     def refine_points(self, tracks: np.ndarray) -> None:
         """Re-estimate the given points from their inlier rows with the cameras held (in
@@ -191,9 +203,10 @@ class BundleAdjuster:
         camera whose distortion is held goes back to its nominal distortion for the BA.
 
         A camera whose principal point is already off its nominal value passed before (in this
-        model, or in the clusters merged into it) and keeps it free; one the split-sample step
-        held at an earlier final BA of this model stays held, untested again (the first two
-        steps, cheap, run at every final BA, as does the distortion test).  The tests run on the
+        model, or in the clusters merged into it) and keeps it free, unless
+        :meth:`retest_calibration` asked for the test again; one the split-sample step held at
+        an earlier final BA of this model stays held, untested again (the first two steps, cheap,
+        run at every final BA, as does the distortion test).  The tests run on the
         growing model's track subset (:meth:`_subset`: each image's best track per grid cell, so
         every image and every part of it counts): its covariance is larger than the full
         problem's, a conservative screen, at the cost of a fraction of the final BA.  The
@@ -209,7 +222,7 @@ class BundleAdjuster:
                 continue
             nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
             pp_free[c] = bool(np.any(nominal[[3, 4]] != current[[3, 4]]))
-            if not pp_free[c] and c not in self.held_by_halves:
+            if (c in self._retest or not pp_free[c]) and c not in self.held_by_halves:
                 untested.append(c)
             levels[c] = refine_level(True, pp_free[c])
         if not untested and not any(distortion_components(s.priors[c].model) for c in pp_free):
@@ -218,7 +231,7 @@ class BundleAdjuster:
         if problem is None:
             return levels
         trial = tuple("all" if c in untested else "focal_radial" if c in pp_free else "none" for c in cams)
-        held_distortion: dict[int, np.ndarray] = {}  # camera key -> its parameters with the nominal distortion
+        held: dict[int, np.ndarray] = {}  # camera key -> its parameters, held ones back at their nominal values
         # None where the system is singular (images joined to the rest by too few tracks): the
         # tests then keep COLMAP's choice (principal point held, distortion refined).
         steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
@@ -236,6 +249,15 @@ class BundleAdjuster:
                     test = confirm_by_halves(test, nominal, self._halves(c, free, tracks, loss_scale))
                     if not test.accepted:
                         self.held_by_halves.add(c)
+                if pp_free[c]:  # tested again (retest_calibration)
+                    if not np.isfinite(test.chi2):  # nothing to test it with yet: the earlier decision stands
+                        test = replace(test, accepted=True, reason="refined before, not testable now")
+                    else:
+                        self._retest.discard(c)
+                    if not test.accepted:  # held now: back to the nominal value
+                        pp = list(model_spec(prior.model).pp_idx)
+                        held[s.cam_keys[c]] = s.params[c].copy()
+                        held[s.cam_keys[c]][pp] = np.asarray(prior.params, float)[pp]
                 self.principal_point_tests[c] = test
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, test.summary())
                 pp_free[c] = test.accepted
@@ -250,11 +272,10 @@ class BundleAdjuster:
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
             if not distortion.accepted and distortion_components(prior.model):
                 extra = list(model_spec(prior.model).extra_idx)
-                held_distortion[s.cam_keys[c]] = s.params[c].copy()
-                held_distortion[s.cam_keys[c]][extra] = np.asarray(prior.params, float)[extra]
+                held.setdefault(s.cam_keys[c], s.params[c].copy())[extra] = np.asarray(prior.params, float)[extra]
             levels[c] = refine_level(distortion.accepted, pp_free[c])
-        if held_distortion:
-            s.set_camera_params(held_distortion)  # one update of the normalised coordinates
+        if held:
+            s.set_camera_params(held)  # one update of the normalised coordinates
         return levels
 
     def _halves(self, camera: int, free: np.ndarray, tracks: np.ndarray, loss_scale: float):
@@ -311,6 +332,16 @@ class BundleAdjuster:
         self.principal_point_tests.clear()
         self.distortion_tests.clear()
         self.held_by_halves.clear()
+        self._retest.clear()
+
+    def retest_calibration(self) -> None:
+        """The next final BAs decide every camera's self-calibration again, from the current
+        values: also a principal point that passed the test before (in a model that held part
+        of the data only), which is set back to its nominal value if it fails now.  Until a
+        final BA's system gives a covariance to test it with (a merged model's parts may meet
+        in too few tracks at first), the earlier decision stands and it stays refined."""
+        self.forget_calibration_tests()
+        self._retest = set(range(len(self.state.priors)))
 
     def calibration_report(self) -> list[str]:
         """What the model's last final BAs decided of each camera they tested, a line per camera

@@ -12,10 +12,14 @@ its pose there.  Local models that no edge path joins to it stay models of their
 The merged model is then re-triangulated with every pose, and bundle-adjusted in the region of
 the new images only (``BundleAdjuster.region``: the new images and the old ones that share
 points with them free, the images beyond held), the points outside that region re-estimated
-with their cameras held; ``full_ba`` runs the global BA of the ``merge`` stage instead.
+with their cameras held.  ``full_ba``, or a region of at least :data:`FULL_BA_REGION_SHARE` of
+the model, runs the global BA of the ``merge`` stage instead, from the intrinsics pooled over
+the finished model and the new models, with the self-calibration decisions made again.
 """
 
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 
@@ -30,9 +34,17 @@ from sfm.mapper.state import MapperState
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph
 from sfm.merge.options import MergeOptions
-from sfm.merge.refinement import alternate_until_converged, refine_with_poses
+from sfm.merge.refinement import alternate_until_converged
+
+log = logging.getLogger(__name__)
 
 ANCHOR = 0  # the finished model is node 0 of the extension's cluster graph
+# A region BA that frees at least this share of the extended model's images costs about what a
+# global BA costs, yet cannot refine the intrinsics of a camera that the held images share: the
+# extension then gets the global BA.  Its new images are then as much of the model as the old
+# ones, and the finished model's calibration decisions (``sfm.mapper.distortion``,
+# ``sfm.mapper.principal_point``) rested on half of the data or less: they are made again.
+FULL_BA_REGION_SHARE = 0.5
 
 
 def plan_extension(nodes: list[LocalModel], options: MergeOptions, seed: int = 0) -> tuple[dict, list[MergePlan]]:
@@ -49,28 +61,32 @@ def plan_extension(nodes: list[LocalModel], options: MergeOptions, seed: int = 0
 def extended_poses(nodes: list[LocalModel], plan: MergePlan, edges: dict, nominal: dict[int, np.ndarray] | None = None):
     """Poses (by image name) and camera parameters (by camera id) of the anchor's component in
     the anchor's frame (Alg. 2, lines 6 and 10, composed along each tree path): the anchor's own
-    images and cameras keep theirs exactly; each new image takes the pose of the model nearest
-    the anchor that registered it, each new camera the parameters of the model that registered
-    most of its images (``nominal``: as in ``merged_poses``)."""
+    images keep their poses exactly; each new image takes the pose of the model nearest the
+    anchor that registered it.  ``(poses, params, pooled, sims)``: ``params`` keep the anchor's
+    cameras exactly (a region BA holds the images beyond the region with them), ``pooled`` are
+    every camera's parameters pooled over the models as the merge pools them (``merged_poses``,
+    ``nominal`` as there), the start of a global BA."""
     sims = anchor_from_model(plan, edges)
-    poses, params = merged_poses(nodes, plan, sims, nominal)
+    poses, pooled = merged_poses(nodes, plan, sims, nominal)
+    params = {cam_id: p.copy() for cam_id, p in pooled.items()}
     anchor = nodes[plan.anchor].model
     for cam_id, cam in anchor.cameras.items():
         params[cam_id] = cam.params.copy()
-    return poses, params, sims
+    return poses, params, pooled, sims
 
 
 def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],
-                     camera_params: dict[int, np.ndarray], new_names: set[str], full_ba: bool = False) -> Reconstruction:
+                     camera_params: dict[int, np.ndarray], new_names: set[str], full_ba: bool = False,
+                     pooled_params: dict[int, np.ndarray] | None = None) -> Reconstruction:
     """The extended model's refinement (Figure 1's re-triangulation and BA after merging, with
     a cost that grows with the new part): every track triangulated with the merged poses, a BA
     of the new images' region (``BundleAdjuster.region``) with the rest held and filtering,
     alternating with re-triangulation until it converges (``alternate_until_converged``, as the
     merge's refinement); the points outside the region are
-    re-estimated with their cameras held.  ``full_ba``: :func:`refine_with_poses`, the global
-    BA of the ``merge`` stage."""
-    if full_ba:
-        return refine_with_poses(payload, opts, poses, camera_params)
+    re-estimated with their cameras held.  ``full_ba``, or a region of at least
+    :data:`FULL_BA_REGION_SHARE` of the model: the global BA of the ``merge`` stage
+    (:func:`sfm.merge.refinement.refine_with_poses`) from ``pooled_params`` (None:
+    ``camera_params``), every camera's self-calibration tested again."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # nothing would register the dropped images again
     state.release_pairs()
@@ -81,6 +97,17 @@ def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str,
     new = np.array([i for i, n in enumerate(state.names) if n in new_names], dtype=np.int64)
     adjuster = BundleAdjuster(state)
     state.retriangulate()
+    region_images = adjuster.region_images(new)
+    if full_ba or len(region_images) >= FULL_BA_REGION_SHARE * state.num_registered:
+        log.info("%s: global BA (%s: %d of the %d images in the new images' region)", state.payload.label,
+                 "--full-ba" if full_ba else f"at least {FULL_BA_REGION_SHARE:.0%}", len(region_images),
+                 state.num_registered)
+        if pooled_params is not None:
+            state.set_camera_params(pooled_params)
+            state.retriangulate()
+        adjuster.retest_calibration()
+        alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
+        return to_reconstruction(state)
     region = np.zeros(0, np.int64)
 
     def adjust_region() -> None:

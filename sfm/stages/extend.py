@@ -347,13 +347,13 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     merged_in = [n for n in main.clusters if n != ANCHOR]
     extended = None
     if merged_in:
-        poses, params, sims = extended_poses(nodes, main, edges, nominal)
+        poses, params, pooled, sims = extended_poses(nodes, main, edges, nominal)
         log_merge(ext.recorder, [n.label for n in nodes], [n.model for n in nodes], edges, [main], [sims], stage="extend")
         anchor_names = {im.name for im in olds[0].images.values()}
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
                                    min_inliers=mapper.min_num_matches, labels=["extended"])
         extended = refine_extension(payloads[0], mapper, poses, params, set(poses) - anchor_names,
-                                    full_ba=o.extend.full_ba)
+                                    full_ba=o.extend.full_ba, pooled_params=pooled)
     others = []  # (model, holds an old model's images)
     for plan, poses, params in components:
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
