@@ -24,5 +24,5 @@ class ExtendOptions(Options):
     """Options of ``graphsfm extend`` beyond those of the stages it runs again on the new images."""
 
     full_ba: bool = option(
-        False, "After merging the new images into the model, bundle-adjust every image and point (cost grows "
-        "with the whole model) instead of the new images' region with the rest of the model held.")
+        False, "Bundle-adjust every image and point after the merge (cost grows with the whole model), not only "
+        "the new images' region with the rest held (a region of half the model or more gets it anyway).")
