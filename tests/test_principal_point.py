@@ -18,6 +18,7 @@ from sfm.io.colmap_model import read_model
 from sfm.io.database import Database
 from sfm.mapper.principal_point import (MAX_CORRELATION, SIGNIFICANCE_CHI2, check_principal_point, confirm_by_halves,
                                         split_halves)
+from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.merge.extension import refine_extension
 from sfm.stages.map import run_map
@@ -202,3 +203,24 @@ def test_an_extensions_global_ba_tests_a_principal_point_that_passed_before_agai
         found[shift] = np.asarray(recon.cameras[cam_id].params)[1:3] - centre
     np.testing.assert_array_equal(found[0.0, 0.0], [0.0, 0.0])      # tested again, held at the nominal value
     np.testing.assert_allclose(found[20.0, -12.0], [20.0, -12.0], atol=1.5)
+
+
+def test_a_cluster_given_the_finished_models_calibration_keeps_what_its_photos_agree_with(tmp_path):
+    """``extend``'s new clusters start from the finished model's calibration
+    (``ClusterPayloads(calibration=...)``): the orbit's keypoints moved by (20, -12) px, a
+    cluster given that principal point holds it exactly (its photos agree with it), where one
+    given the database's centred value finds it only to within the test's precision."""
+    opts = SynthOptions(scene="orbit", num_images=16, observations_per_image=800, seed=3)
+    scene = make_scene(opts)
+    moved = replace(scene, keypoints=[k + np.array([20.0, -12.0]) for k in scene.keypoints])
+    write_database(moved, simulate_matching(scene, opts), tmp_path / "database.db", camera_model="SIMPLE_RADIAL")
+    with Database(tmp_path / "database.db", readonly=True) as database:
+        [(cam_id, cam)] = database.read_cameras().items()
+    calibrated = np.array(cam.params, float)
+    calibrated[1:3] += [20.0, -12.0]
+    [payload] = ClusterPayloads(tmp_path / "database.db", None, fixed_intrinsics=False, min_inliers=15,
+                                calibration={cam_id: calibrated})
+    np.testing.assert_array_equal(payload.cameras[cam_id].params, calibrated)
+    [model] = reconstruct_incremental(payload, MapperOptions(intrinsics_refinement="auto"))
+    assert len(model.registered_image_ids) == 16
+    np.testing.assert_array_equal(model.cameras[cam_id].params[1:3], calibrated[1:3])

@@ -226,7 +226,7 @@ def _run_steps(ext: _Extension, images: Path | None) -> dict:
     olds = [read_model(folder) for folder in numbered_folders(ext.sparse)]  # sparse/0, the anchor, first
     clusters = _cluster(ext, olds, new_names)
     t3 = time.perf_counter()
-    models = _map(ext, clusters)
+    models = _map(ext, clusters, {cam_id: cam.params for cam_id, cam in olds[0].cameras.items()})
     t4 = time.perf_counter()
     ext.times.update({"cluster": t3 - t2, "map": t4 - t3})
     if not ext.step_done("result"):
@@ -288,9 +288,14 @@ def _cluster(ext: _Extension, olds: list[Reconstruction], new_names: list[str]) 
     return out
 
 
-def _map(ext: _Extension, clusters: dict) -> list[LocalModel]:
+def _map(ext: _Extension, clusters: dict, calibration: dict[int, np.ndarray]) -> list[LocalModel]:
     """Step 4: local SfM of every new cluster -> ``WORK/extend/clusters/E<k>/<m>``, each cluster
-    recorded as it finishes (a rerun keeps them)."""
+    recorded as it finishes (a rerun keeps them).  A camera the finished model calibrated
+    (``calibration``: its parameters there) is the new clusters' prior: they start from it and
+    free its principal point and distortion only where their own photos call for it, as a
+    cluster does of the database's values.  From the nominal values instead, a new cluster that
+    cannot determine them (half the scene, or less) holds them there, and its poses absorb the
+    difference: merged into the model, its points would reproject off by it."""
     o = ext.options.mapper
     members = [c["members"] for c in clusters["clusters"]]
     labels = [c["id"] for c in clusters["clusters"]]
@@ -298,7 +303,7 @@ def _map(ext: _Extension, clusters: dict) -> list[LocalModel]:
     done = ext.rec["clusters"]
     if members:
         payloads = ClusterPayloads(ext.ws / DATABASE, members, fixed_intrinsics=not o.refine_given_intrinsics,
-                                   min_inliers=o.min_num_matches, labels=labels)
+                                   min_inliers=o.min_num_matches, labels=labels, calibration=calibration)
         todo = [k for k, label in enumerate(labels) if label not in done]
         max_points = ext.recorder.options.record_points if ext.recorder.enabled else 0
         for k, res in map_clusters(payloads, todo, o.for_model(False), ext.executor, max_points):

@@ -25,11 +25,16 @@ class ClusterPayloads(Sequence[MapperInput]):
     one at a time keeps memory to the clusters in flight.  Images are named, everything else
     is arrays: a payload needs nothing from the caller's disk.  ``labels``, ``names`` and
     ``sizes`` need no read.  With ``fixed_intrinsics`` the cameras the ``--intrinsics`` file gave
-    are held fixed (``WORK/extract.json``; in a database made elsewhere, its PINHOLE cameras)."""
+    are held fixed (``WORK/extract.json``; in a database made elsewhere, its PINHOLE cameras).
+    ``calibration`` (camera id -> parameters) replaces the database's parameters of those cameras
+    as their priors: the values the mapper starts from and tests its self-calibration against
+    (``sfm.mapper.principal_point``, ``sfm.mapper.distortion``)."""
 
     def __init__(self, db_path: Path, clusters: list[list[str]] | None, fixed_intrinsics: bool,
-                 min_inliers: int, labels: list[str] | None = None) -> None:
+                 min_inliers: int, labels: list[str] | None = None,
+                 calibration: dict[int, np.ndarray] | None = None) -> None:
         self.db_path, self.fixed_intrinsics, self.min_inliers = Path(db_path), fixed_intrinsics, min_inliers
+        self.calibration = dict(calibration or {})
         with Database(db_path, readonly=True) as db:
             self.images, self.cams = db.read_images(), db.read_cameras()
         given = given_camera_ids(self.db_path.parent)
@@ -55,7 +60,7 @@ class ClusterPayloads(Sequence[MapperInput]):
             colors = db.read_keypoint_colors(ids)
         local = {iid: n for n, iid in enumerate(ids)}
         cameras = {
-            c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, cams[c].params,
+            c: CameraPrior(cams[c].model, cams[c].width, cams[c].height, self.calibration.get(c, cams[c].params),
                            cams[c].prior_focal_length, fixed=self.fixed_intrinsics and c in self.given)
             for c in sorted({images[i].camera_id for i in ids})
         }
