@@ -99,8 +99,12 @@ def current_code(out: Path) -> Path:
 def make_data(out: Path, name: str, data_root: Path) -> tuple[Path, Path]:
     """``(database, GT table)`` of a set, made once by this checkout."""
     folder = out / "data" / name
-    gt = (folder / "scene" / "gt" if name.startswith("demo") else data_root / name / "gt"
-          if name in ("lund_door", "temple_ring") else folder / "gt") / "cameras_gt_opencv.txt"
+    if name.startswith("demo"):  # the rendered scene's own GT
+        gt = folder / "scene" / "gt" / "cameras_gt_opencv.txt"
+    elif name in ("lund_door", "temple_ring"):  # real photos: the dataset's GT
+        gt = data_root / name / "gt" / "cameras_gt_opencv.txt"
+    else:  # synthetic: written with the database
+        gt = folder / "gt" / "cameras_gt_opencv.txt"
     if (folder / "database.db").exists() and (folder / "done").exists():
         return folder / "database.db", gt
     shutil.rmtree(folder, ignore_errors=True)

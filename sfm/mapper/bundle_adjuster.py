@@ -232,6 +232,11 @@ class BundleAdjuster:
             return levels
         trial = tuple("all" if c in untested else "focal_radial" if c in pp_free else "none" for c in cams)
         held: dict[int, np.ndarray] = {}  # camera key -> its parameters, held ones back at their nominal values
+
+        def hold(c: int, components: list[int]) -> None:  # camera c's components back at their nominal values
+            nominal_params = np.asarray(s.priors[c].params, float)
+            held.setdefault(s.cam_keys[c], s.params[c].copy())[components] = nominal_params[components]
+
         # None where the system is singular (images joined to the rest by too few tracks): the
         # tests then keep COLMAP's choice (principal point held, distortion refined).
         steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
@@ -255,9 +260,7 @@ class BundleAdjuster:
                     else:
                         self._retest.discard(c)
                     if not test.accepted:  # held now: back to the nominal value
-                        pp = list(model_spec(prior.model).pp_idx)
-                        held[s.cam_keys[c]] = s.params[c].copy()
-                        held[s.cam_keys[c]][pp] = np.asarray(prior.params, float)[pp]
+                        hold(c, list(model_spec(prior.model).pp_idx))
                 self.principal_point_tests[c] = test
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, test.summary())
                 pp_free[c] = test.accepted
@@ -271,8 +274,7 @@ class BundleAdjuster:
                 self.distortion_tests[c] = distortion
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
             if not distortion.accepted and distortion_components(prior.model):
-                extra = list(model_spec(prior.model).extra_idx)
-                held.setdefault(s.cam_keys[c], s.params[c].copy())[extra] = np.asarray(prior.params, float)[extra]
+                hold(c, list(model_spec(prior.model).extra_idx))
             levels[c] = refine_level(distortion.accepted, pp_free[c])
         if held:
             s.set_camera_params(held)  # one update of the normalised coordinates

@@ -21,12 +21,12 @@ as the model has distortion parameters at 99.73% (the two-sided 3-sigma level), 
 covariance from the BA (:func:`backend.bundle_adjustment.calibration_step`: poses and points
 marginalised out, scaled by the a-posteriori variance factor).  Otherwise the camera keeps its
 nominal distortion in that BA.  Without a covariance (a singular system) nothing shows the
-distortion undetermined, and it is refined, as COLMAP does.  The estimate and covariance are those of COLMAP's camera model,
-the principal point held where it is (:func:`hold_components`): the distortion is the first
-additional parameter a camera gets, and the principal point is tested after it
-(``sfm.mapper.principal_point``).  Freeing the principal point too would widen the distortion's
-uncertainty by their correlation and hold the distortion of a real lens whose principal point
-is also off centre.  Every growing BA still refines the distortion (a young model
+distortion undetermined, and it is refined, as COLMAP does.  The estimate and covariance are
+those of COLMAP's camera model, the principal point held where it is (:func:`hold_components`):
+the distortion is the first additional parameter a camera gets, and the principal point is
+tested after it (``sfm.mapper.principal_point``).  Freeing the principal point too would widen
+the distortion's uncertainty by their correlation and hold the distortion of a real lens whose
+principal point is also off centre.  Every growing BA still refines the distortion (a young model
 needs it to register the next images); only the model's final BAs, with every image and every
 track, decide.  Nothing here depends on the scene: the test reads only the camera's estimates
 and their covariance.
