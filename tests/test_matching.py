@@ -181,10 +181,11 @@ def test_retrieval_picks_same_place_neighbours_first():
 
 
 # ------------------------------------------------------------------------------ the stage
-def write_two_cluster_database(path, seed: int = 0):
+def write_two_cluster_database(path, seed: int = 0, reverse: bool = False):
     """5 PINHOLE images with focal priors: images 1-3 see point cloud A, images 4-5 cloud B
     (far away). Every 3D point has a descriptor, seen with per-view noise; each image also has
-    distractor keypoints. Returns the true cam_from_world rotations by image id."""
+    distractor keypoints. ``reverse``: the same images added in the reverse order (other ids).
+    Returns the true cam_from_world rotations by image id."""
     rng = np.random.default_rng(seed)
     width, height, f = 800, 600, 700.0
     params = np.array([f, f, (width - 1) / 2, (height - 1) / 2])
@@ -192,29 +193,24 @@ def write_two_cluster_database(path, seed: int = 0):
     points = [c + rng.uniform(-2, 2, (500, 3)) for c in clouds]
     point_desc = [rootsift_like(rng, 500) for _ in clouds]
     views = [(0, -10), (0, 0), (0, 12), (1, -8), (1, 6)]  # (cloud, azimuth in degrees)
+    made = []
+    for c, az in views:
+        center = clouds[c] + 9 * np.array([np.sin(np.radians(az)), 0.0, -np.cos(np.radians(az))])
+        rotation, translation = look_at(center, clouds[c], np.array([0.0, -1.0, 0.0]))
+        kp = project("PINHOLE", params, points[c] @ rotation.T + translation)
+        seen = np.flatnonzero((kp[:, 0] > 0) & (kp[:, 0] < width - 1) & (kp[:, 1] > 0) & (kp[:, 1] < height - 1))
+        kp = np.vstack([kp[seen] + rng.normal(0, 0.3, (len(seen), 2)), rng.uniform(0, [width, height], (200, 2))])
+        desc = np.vstack([noisy(rng, point_desc[c][seen], 0.02), rootsift_like(rng, 200)])
+        order = rng.permutation(len(kp))
+        made.append((rotation, kp[order], quantised(desc[order])))
     rotations = {}
     with Database(path) as db:
-        for k, (c, az) in enumerate(views):
-            center = clouds[c] + 9 * np.array(
-                [np.sin(np.radians(az)), 0.0, -np.cos(np.radians(az))]
-            )
-            rotation, translation = look_at(center, clouds[c], np.array([0.0, -1.0, 0.0]))
-            kp = project("PINHOLE", params, points[c] @ rotation.T + translation)
-            seen = np.flatnonzero(
-                (kp[:, 0] > 0) & (kp[:, 0] < width - 1) & (kp[:, 1] > 0) & (kp[:, 1] < height - 1)
-            )
-            kp = np.vstack(
-                [
-                    kp[seen] + rng.normal(0, 0.3, (len(seen), 2)),
-                    rng.uniform(0, [width, height], (200, 2)),
-                ]
-            )
-            desc = np.vstack([noisy(rng, point_desc[c][seen], 0.02), rootsift_like(rng, 200)])
-            order = rng.permutation(len(kp))
+        for k in (reversed(range(len(views))) if reverse else range(len(views))):
+            rotation, kp, desc = made[k]
             cam = db.add_camera("PINHOLE", width, height, params, prior_focal_length=True)
             image_id = db.add_image(f"img{k}.png", cam)
-            db.write_keypoints(image_id, kp[order])
-            db.write_descriptors(image_id, quantised(desc[order]))
+            db.write_keypoints(image_id, kp)
+            db.write_descriptors(image_id, desc)
             rotations[image_id] = rotation
     return rotations
 
@@ -253,6 +249,32 @@ def test_run_match_verifies_overlapping_pairs_deterministically_and_resumes(tmp_
     again = run_match(tmp_path / "a", MatchOptions(seed=3), LocalExecutor(1))
     assert again.num_pairs_skipped_existing == 10 and again.num_pairs_processed == 0
     assert again.num_verified == 4
+
+
+def test_a_pair_gets_the_same_matches_and_geometry_whatever_ids_the_database_gave_its_images(tmp_path):
+    # An extension numbers its images after the old ones: the same two photos must verify the
+    # same way as in a workspace that held them all from the start (seed and direction by name).
+    for ws, reverse in (("a", False), ("b", True)):
+        (tmp_path / ws).mkdir()
+        write_two_cluster_database(tmp_path / ws / "database.db", reverse=reverse)
+        run_match(tmp_path / ws, MatchOptions(seed=3), LocalExecutor(1))
+    by_name = {}
+    for ws in ("a", "b"):
+        with Database(tmp_path / ws / "database.db", readonly=True) as db:
+            ids = {r.name: i for i, r in db.read_images().items()}
+            by_name[ws] = {(n1, n2): (db.read_two_view_geometry(ids[n1], ids[n2]), db.read_matches(ids[n1], ids[n2]))
+                           for n1 in sorted(ids) for n2 in sorted(ids) if n1 < n2}
+    assert ids == {f"img{k}.png": 5 - k for k in range(5)}  # b: reversed ids
+    verified = 0
+    for pair, (ga, ma) in by_name["a"].items():
+        gb, mb = by_name["b"][pair]
+        assert ga.config == gb.config, pair
+        assert np.array_equal(ma, mb), pair
+        assert np.array_equal(ga.inlier_matches, gb.inlier_matches), pair
+        if ga.config >= 2:
+            verified += 1
+            np.testing.assert_allclose(ga.qvec, gb.qvec, atol=1e-12)  # cam2_from_cam1 of the same direction
+    assert verified == 4
 
 
 def test_run_match_skips_images_without_keypoints(tmp_path, caplog):

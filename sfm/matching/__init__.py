@@ -19,8 +19,9 @@ Design:
   otherwise, both at COLMAP's 4 px; a homography with more than 0.8 of the E or F inliers marks
   the pair planar or panoramic; fewer than ``min_num_inliers`` (15) inliers make it
   degenerate, stored so that a rerun knows it was tried.
-- Randomness comes from the seed per pair, so any number of workers and any order of pairs
-  give the same matches.  F and H are held in OpenCV's pixel convention and converted when the
+- Randomness comes from the seed and the pair's image names, and a pair is matched from the
+  image whose name sorts first, so any number of workers, any order of pairs and any image ids
+  (an extension's images come after the old ones) give the same matches.  F and H are held in OpenCV's pixel convention and converted when the
   stage writes them (``sfm.matching.verification.to_colmap_pixels``).
 
 Modules, in reading order:

@@ -30,10 +30,11 @@ class PairMatcher:
     """Matches and verifies pairs, reading features from a database through an LRU cache."""
 
     def __init__(self, load: Callable[[int], tuple[np.ndarray, np.ndarray]], camera_of: dict[int, int],
-                 cameras: dict[int, CameraRecord], options: MatchOptions) -> None:  # fmt: skip
+                 cameras: dict[int, CameraRecord], options: MatchOptions, name_of: dict[int, str]) -> None:  # fmt: skip
         """``load``: image id -> (keypoints, uint8 descriptors); ``camera_of``: image id -> camera
-        id; ``cameras``: camera id -> record."""
+        id; ``cameras``: camera id -> record; ``name_of``: image id -> image name."""
         self.load, self.camera_of, self.cameras, self.options = load, camera_of, cameras, options
+        self.name_of = name_of
         self.verify_options = options.verify_options()
         self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
         self._cache_bytes = 0
@@ -56,9 +57,14 @@ class PairMatcher:
     def __call__(
         self, pair: tuple[int, int]
     ) -> tuple[int, int, np.ndarray, TwoViewGeometry, float, float]:
-        id1, id2 = int(pair[0]), int(pair[1])
+        """``(id1, id2, matches, geometry, match seconds, verify seconds)`` of the pair, matched
+        from the image whose name sorts first to the other (the ratio test is one-sided) with the
+        seed of the two names: a pair of images gives the same matches and geometry in every
+        workspace, whatever ids its database gave them.  ``id1`` is that first image (the
+        database stores a pair either way round)."""
+        id1, id2 = sorted((int(pair[0]), int(pair[1])), key=lambda i: (self.name_of[i], i))
         (kp1, d1, _), (kp2, d2, d2t) = self.features(id1), self.features(id2)
-        seed = pair_seed(self.options.seed, id1, id2)
+        seed = pair_seed(self.options.seed, self.name_of[id1], self.name_of[id2])
         o = self.options
         t0 = time.perf_counter()
         matches = match_descriptors(d1, d2, o.max_ratio, o.cross_check, o.matcher, seed=seed, normalized=True,
@@ -79,6 +85,7 @@ class PairBatch:
     camera_of: dict[int, int]
     cameras: dict[int, CameraRecord]
     options: MatchOptions
+    name_of: dict[int, str]
     database: str | None = None
     features: dict[int, tuple[np.ndarray, np.ndarray]] | None = None
 
@@ -99,15 +106,16 @@ def close_matchers() -> None:
 def match_batch(batch: PairBatch) -> list[tuple[int, int, np.ndarray, TwoViewGeometry, float, float]]:
     """Match and verify every pair of ``batch`` (see :meth:`PairMatcher.__call__`)."""
     if batch.features is not None:
-        matcher = PairMatcher(batch.features.__getitem__, batch.camera_of, batch.cameras, batch.options)
+        matcher = PairMatcher(batch.features.__getitem__, batch.camera_of, batch.cameras, batch.options, batch.name_of)
     else:
         key = (batch.database, batch.options)
         if key not in _MATCHERS:
             close_matchers()  # one database at a time
             db = Database(Path(batch.database), readonly=True)
             loader = lambda image_id: (db.read_keypoints(image_id), db.read_descriptors(image_id))  # noqa: E731
-            _MATCHERS[key] = (PairMatcher(loader, batch.camera_of, batch.cameras, batch.options), db)
+            _MATCHERS[key] = (PairMatcher(loader, batch.camera_of, batch.cameras, batch.options, batch.name_of), db)
         matcher = _MATCHERS[key][0]
-        matcher.camera_of.update(batch.camera_of)  # each batch brings the cameras of its images
+        matcher.camera_of.update(batch.camera_of)  # each batch brings the cameras and names of its images
+        matcher.name_of.update(batch.name_of)
         matcher.cameras.update(batch.cameras)
     return [matcher(pair) for pair in batch.pairs]

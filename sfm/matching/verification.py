@@ -32,6 +32,7 @@ and :func:`from_colmap_pixels` back, the one place that knows. E, qvec and tvec 
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass, replace
 from typing import Protocol
@@ -74,10 +75,14 @@ class VerifyOptions:
     max_h_inlier_ratio: float = 0.8
 
 
-def pair_seed(seed: int, image_id1: int, image_id2: int) -> int:
-    """A 31-bit RNG state from (seed, pair), independent of the order the pair is given in."""
-    a, b = sorted((int(image_id1), int(image_id2)))
-    return int(np.random.SeedSequence([int(seed), a, b]).generate_state(1)[0] & 0x7FFFFFFF)
+def pair_seed(seed: int, name1: str, name2: str) -> int:
+    """A 31-bit RNG state from (seed, pair), the pair named by its images' names in either order:
+    the same two images get the same state in every workspace, whatever ids the database gave
+    them (an extension's images are numbered after the old ones)."""
+    a, b = sorted((str(name1), str(name2)))
+    digest = hashlib.blake2b(f"{a}\0{b}".encode(), digest_size=8).digest()
+    words = np.frombuffer(digest, dtype=np.uint32).tolist()
+    return int(np.random.SeedSequence([int(seed), *words]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
 def ransac_trials(

@@ -65,7 +65,7 @@ class MatchResult:
     time_total_s: float
 
 
-def _batches(db: Database, todo: list[tuple[int, int]], camera_of, cameras, options: MatchOptions,
+def _batches(db: Database, todo: list[tuple[int, int]], camera_of, cameras, names, options: MatchOptions,
              size: int, remote: bool) -> Iterator[PairBatch]:
     """Consecutive pairs (exhaustive order keeps one image fixed) with the cameras they need;
     for remote workers, with their images' features."""
@@ -73,7 +73,8 @@ def _batches(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
         pairs = todo[start:start + size]
         ids = sorted({i for p in pairs for i in p})
         cams = {camera_of[i] for i in ids}
-        batch = PairBatch(pairs, {i: camera_of[i] for i in ids}, {c: cameras[c] for c in cams}, options)
+        batch = PairBatch(pairs, {i: camera_of[i] for i in ids}, {c: cameras[c] for c in cams}, options,
+                          {i: names[i] for i in ids})
         if remote:
             batch.features = {i: (db.read_keypoints(i), db.read_descriptors(i)) for i in ids}
         else:
@@ -148,7 +149,7 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         logger.info("%d images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(usable), len(pairs), skipped, len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
-        times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
+        times = _process(db, todo, camera_of, db.read_cameras(), names, options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
         if recorder.enabled:
             log_match(recorder, db, options, len(pairs), workspace)
@@ -197,7 +198,7 @@ def match_extension(workspace: Path, new_names: list[str], options: MatchOptions
         logger.info("extension: %d new and %d old images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(new), len(old), len(pairs), len(pairs) - len(todo), len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
-        times = _process(db, todo, camera_of, db.read_cameras(), options, executor)
+        times = _process(db, todo, camera_of, db.read_cameras(), names, options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
     return MatchResult(
         num_images=len(usable), num_pairs_considered=len(pairs), num_pairs_skipped_existing=len(pairs) - len(todo),
@@ -207,7 +208,7 @@ def match_extension(workspace: Path, new_names: list[str], options: MatchOptions
     )  # fmt: skip
 
 
-def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, options: MatchOptions, executor):
+def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, names, options: MatchOptions, executor):
     """Run the pairs in batches on ``executor``, write results in order; (t_match, t_verify)."""
     workers = executor.num_workers() if executor.remote else executor.workers
     size = max(1, min(REMOTE_BATCH if executor.remote else LOCAL_BATCH, len(todo) // ((4 if executor.remote else 8) * workers)))
@@ -221,7 +222,7 @@ def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, opti
         batch.clear()
 
     failed_write = False
-    tasks = _batches(db, todo, camera_of, cameras, options, size, executor.remote)
+    tasks = _batches(db, todo, camera_of, cameras, names, options, size, executor.remote)
     try:
         results = executor.map(match_batch, tasks, num_items=-(-len(todo) // size))
         pairs = (r for task in results for r in task.value)
