@@ -136,6 +136,41 @@ class MapperState:
     def set_points(self, tracks: np.ndarray, xyz: np.ndarray) -> None:
         self.track_xyz[tracks] = xyz
 
+    def seed_points(self, names: list[str], keypoints: np.ndarray, point_of_row: np.ndarray,
+                    xyz: np.ndarray) -> int:
+        """Points given from outside the model (the merged clusters' own points, moved into the
+        merged frame): row ``k`` says that keypoint ``keypoints[k]`` of image ``names[k]``
+        observes point ``point_of_row[k]`` at ``xyz[point_of_row[k]]``.  Each track not yet
+        valid takes the first given point with at least two rows in registered images on it,
+        and those rows become its inliers.  Returns the number of tracks seeded."""
+        index = {name: i for i, name in enumerate(self.names)}
+        image = np.array([index.get(n, -1) for n in names], dtype=np.int64)
+        kp = np.asarray(keypoints, dtype=np.int64)
+        point = np.asarray(point_of_row, dtype=np.int64)
+        known = image >= 0
+        image, kp, point = image[known], kp[known], point[known]
+        width = int(max(self.obs_kp.max(initial=0), kp.max(initial=0))) + 1
+        keys = self.obs_image.astype(np.int64) * width + self.obs_kp
+        order = np.argsort(keys, kind="stable")
+        at = np.searchsorted(keys[order], image * width + kp)
+        found = (at < len(keys)) & (keys[order[np.minimum(at, len(keys) - 1)]] == image * width + kp)
+        rows, point = order[at[found]], point[found]
+        keep = self.registered[self.obs_image[rows]]
+        rows, point = rows[keep], point[keep]
+        track = self.obs_track[rows]
+        pair = np.unique(np.stack([track, point], axis=1), axis=0, return_counts=True)
+        (tracks_points, counts) = pair
+        tracks_points = tracks_points[(counts >= 2) & ~self.track_valid[tracks_points[:, 0]]]
+        # the first given point of each track (points are numbered in the order given)
+        first = np.unique(tracks_points[:, 0], return_index=True)[1]
+        chosen = tracks_points[first]
+        seed_of = np.full(self.num_tracks, -1, dtype=np.int64)
+        seed_of[chosen[:, 0]] = chosen[:, 1]
+        self.obs_inlier[rows[seed_of[track] == point]] = True
+        self.track_xyz[chosen[:, 0]] = np.asarray(xyz, dtype=np.float64)[chosen[:, 1]]
+        self.track_valid[chosen[:, 0]] = True
+        return len(chosen)
+
     def apply_adjustment(self, images: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
                          tracks: np.ndarray, xyz: np.ndarray, cams: np.ndarray | None,
                          camera_params) -> None:

@@ -24,9 +24,16 @@ Design:
   pose of the model nearest the anchor, a camera the parameters of the model that registered
   most of its images.
 - Refinement (Figure 1 and the end of section 3's overview: re-triangulation and BA "can be
-  executed alternatively until convergence"): every track re-triangulated with the merged
-  poses, then global BA and filtering alternate with re-triangulation until it changes at most
-  COLMAP's 0.0005 of the observations (at most five BAs).  The paper finds one round enough;
+  executed alternatively until convergence"): the merged model starts from the local models'
+  own points, moved by the same similarities (Alg. 2's ``C_final`` holds the clusters' points
+  as well as their cameras; a track takes the point of the model nearest the anchor, with the
+  observations that model kept), the other tracks are triangulated with the merged poses, then
+  global BA and filtering alternate with re-triangulation until it changes at most COLMAP's
+  0.0005 of the observations (at most five BAs).  Starting from the clusters' points, not
+  from a triangulation, matters where a cluster's self-calibration differs from the pooled
+  one: its poses fit its own calibration, a triangulation with the pooled one rejects the
+  rows that join it to the others before any BA could reconcile them, and the parts then
+  meet in too few tracks for the BA to close the loop.  The paper finds one round enough;
   clusters joined through thin overlaps need more, because similarity-moved poses make the
   first triangulation reject observations that the first BA brings back.
 - Departures: the MSD is normalised by the common cameras' extent so weights compare across

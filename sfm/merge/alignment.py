@@ -77,3 +77,29 @@ def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3
             if refined.any():
                 params[cam_id][part] = (w[refined, None] * values[refined][:, part]).sum(axis=0) / w[refined].sum()
     return poses, params
+
+
+def merged_points(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3]):
+    """The local models' own points in the anchor frame, nearest-to-anchor model first (Alg. 2's
+    merged cluster ``C_final`` holds them with the cameras): ``(names, keypoints, point_of_row,
+    xyz)``, one row per observation (image name, keypoint index, point number), the points
+    numbered in that order (``MapperState.seed_points``)."""
+    names: list[str] = []
+    keypoints, owners, coordinates = [], [], []
+    count = 0
+    for node in sorted(plan.clusters, key=lambda n: (len(plan.path[n]), n)):
+        model = models[node].model
+        name_of = {image_id: image.name for image_id, image in model.images.items()}
+        points = list(model.points3D.values())
+        if not points:
+            continue
+        xyz = sims[node].apply(np.array([p.xyz for p in points], dtype=np.float64))
+        for k, point in enumerate(points):
+            for image_id, kp in point.track:
+                names.append(name_of[image_id])
+                keypoints.append(kp)
+                owners.append(count + k)
+        coordinates.append(xyz)
+        count += len(points)
+    xyz = np.concatenate(coordinates) if coordinates else np.zeros((0, 3))
+    return names, np.asarray(keypoints, np.int64), np.asarray(owners, np.int64), xyz

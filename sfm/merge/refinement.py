@@ -1,7 +1,10 @@
 """Global refinement of the merged model (paper section 3 and Figure 1: after merging).
 
-All tracks of a merge component are triangulated with the merged poses, then global BA and
-filtering alternate with re-triangulation until re-triangulation changes almost nothing (the
+The tracks of a merge component start from the local models' own points, moved into the merged
+frame (a local model's points fit its own poses and calibration, which a triangulation with the
+pooled calibration would not see), the others are triangulated with the merged poses, then
+global BA and filtering alternate with re-triangulation until re-triangulation changes almost
+nothing (the
 paper: "The re-triangulation step and bundle adjustment step can be executed alternatively until
 convergence"; COLMAP's global refinement stops the same way).  Merged poses come from similarity
 transforms, not from a BA over the merged tracks, so the first triangulation rejects observations
@@ -31,11 +34,14 @@ MAX_REFINEMENTS = 5
 
 
 def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str, tuple[np.ndarray, np.ndarray]],
-                      camera_params: dict[int, np.ndarray], calibration: list[str] | None = None) -> Reconstruction:
-    """Global refinement of merged poses (paper Figure 1, after merging; section 3): every
-    track of the payload is triangulated with the given ``cam_from_world`` poses (by image
-    name) and camera parameters (by camera id), then global BA and filtering alternate with
-    re-triangulation (:func:`alternate_until_converged`).  Images without a pose stay
+                      camera_params: dict[int, np.ndarray], calibration: list[str] | None = None,
+                      points=None) -> Reconstruction:
+    """Global refinement of merged poses (paper Figure 1, after merging; section 3): the
+    tracks start from ``points`` (``sfm.merge.alignment.merged_points``: the local models' own
+    points in the merged frame, with the rows each model kept; ``MapperState.seed_points``),
+    every other track of the payload is triangulated with the given ``cam_from_world`` poses
+    (by image name) and camera parameters (by camera id), then global BA and filtering
+    alternate with re-triangulation (:func:`alternate_until_converged`).  Images without a pose stay
     unregistered.  These BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
     the merged clusters' own global BAs do (``MapperOptions.global_loss_scale``): the merged
     tracks were filtered against poses moved by similarity transforms, not by a BA over them.
@@ -49,6 +55,8 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     state.set_camera_params(camera_params)
     state.set_poses(poses)
     adjuster = BundleAdjuster(state)
+    if points is not None:
+        log.info("%s: %d tracks start from the local models' points", state.payload.label, state.seed_points(*points))
     state.retriangulate()
     alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
     if calibration is not None:

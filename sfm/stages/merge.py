@@ -25,7 +25,7 @@ from sfm.io.ledger import Ledger, files_fingerprint, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, read_report, update_report
 from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
-from sfm.merge.alignment import anchor_from_model, merged_poses
+from sfm.merge.alignment import anchor_from_model, merged_points, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components, unjoined_parts
 from sfm.merge.options import MergeOptions
 from sfm.merge.refinement import refine_with_poses
@@ -128,7 +128,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         sims = anchor_from_model(plan, edges)
         all_sims.append(sims)
         poses, params = merged_poses(models, plan, sims, nominal)
-        components.append((plan, poses, params))
+        components.append((plan, poses, params, merged_points(models, plan, sims)))
     labels = [m.label for m in models]
     local_points = sum(len(m.model.points3D) for m in models)
     if recorder.enabled:
@@ -141,14 +141,14 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
 
     recorder.stage("refine")
     finals, calibrations = [], []
-    payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) for _, p, _ in components],
+    payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) for _, p, _, _ in components],
                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                                min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
-    for k, (plan, poses, params) in enumerate(components):
+    for k, (plan, poses, params, points) in enumerate(components):
         progress.stage("merge", f"final BA of model {k + 1} of {len(components)}")
         with progress.bar_for("final_ba", f"final BA ({len(poses)} images)", "it"):
             calibration: list[str] = []
-            final = refine_with_poses(payloads[k], mapper_options, poses, params, calibration)  # read here, held by it alone
+            final = refine_with_poses(payloads[k], mapper_options, poses, params, calibration, points)  # read here, held by it alone
         if len(final.images) >= mapper_options.smallest_model(payloads.sizes[k]):
             finals.append(final)
             calibrations.append(calibration)
