@@ -63,7 +63,7 @@ def _rows_of(model: Reconstruction):
     return names, keypoints, owner, np.array([p.xyz for p in points])
 
 
-def test_seeded_tracks_take_the_given_points_and_rows_and_the_first_given_point_wins(tmp_path):
+def test_seeded_tracks_take_the_given_points_and_rows_and_the_first_given_point_wins_among_equals(tmp_path):
     reference = _street(tmp_path)
     reference.retriangulate()
     model = to_reconstruction(reference)
@@ -90,3 +90,19 @@ def test_a_point_with_one_row_in_the_registered_images_seeds_nothing(tmp_path):
     state.registered[:] = True
     assert state.seed_points([names[k] for k in rows], keypoints[rows], np.array([0, 0]), xyz) == 1
     assert state.obs_inlier.sum() == 2
+
+
+def test_a_track_takes_the_given_point_seen_by_the_most_rows(tmp_path):
+    reference = _street(tmp_path)
+    reference.retriangulate()
+    names, keypoints, owner, xyz = _rows_of(to_reconstruction(reference))
+    rows = np.flatnonzero(owner == np.argmax(np.bincount(owner)))  # the longest track
+    assert len(rows) >= 3
+    few, all_rows = rows[:2], rows  # point 0: two of its rows; point 1 (given later): all of them
+    state = _street(tmp_path)
+    given = np.r_[few, all_rows]
+    seeded = state.seed_points([names[k] for k in given], keypoints[given], np.r_[[0] * len(few), [1] * len(all_rows)],
+                               np.stack([xyz[owner[rows[0]]] + 1.0, xyz[owner[rows[0]]]]))
+    assert seeded == 1
+    assert state.obs_inlier.sum() == len(all_rows)
+    np.testing.assert_allclose(state.track_xyz[state.track_valid][0], xyz[owner[rows[0]]])

@@ -141,8 +141,9 @@ class MapperState:
         """Points given from outside the model (the merged clusters' own points, moved into the
         merged frame): row ``k`` says that keypoint ``keypoints[k]`` of image ``names[k]``
         observes point ``point_of_row[k]`` at ``xyz[point_of_row[k]]``.  Each track not yet
-        valid takes the first given point with at least two rows in registered images on it,
-        and those rows become its inliers.  Returns the number of tracks seeded."""
+        valid takes, of the given points with at least two rows in registered images on it, the
+        one with the most such rows (the best determined; the first given among equals), and
+        those rows become its inliers.  Returns the number of tracks seeded."""
         index = {name: i for i, name in enumerate(self.names)}
         image = np.array([index.get(n, -1) for n in names], dtype=np.int64)
         kp = np.asarray(keypoints, dtype=np.int64)
@@ -158,10 +159,12 @@ class MapperState:
         keep = self.registered[self.obs_image[rows]]
         rows, point = rows[keep], point[keep]
         track = self.obs_track[rows]
-        pair = np.unique(np.stack([track, point], axis=1), axis=0, return_counts=True)
-        (tracks_points, counts) = pair
-        tracks_points = tracks_points[(counts >= 2) & ~self.track_valid[tracks_points[:, 0]]]
-        # the first given point of each track (points are numbered in the order given)
+        tracks_points, counts = np.unique(np.stack([track, point], axis=1), axis=0, return_counts=True)
+        usable = (counts >= 2) & ~self.track_valid[tracks_points[:, 0]]
+        tracks_points, counts = tracks_points[usable], counts[usable]
+        # each track's point with the most rows on it, the first given among equals
+        order = np.lexsort((tracks_points[:, 1], -counts, tracks_points[:, 0]))
+        tracks_points = tracks_points[order]
         first = np.unique(tracks_points[:, 0], return_index=True)[1]
         chosen = tracks_points[first]
         seed_of = np.full(self.num_tracks, -1, dtype=np.int64)

@@ -26,8 +26,8 @@ Design:
 - Refinement (Figure 1 and the end of section 3's overview: re-triangulation and BA "can be
   executed alternatively until convergence"): the merged model starts from the local models'
   own points, moved by the same similarities (Alg. 2's ``C_final`` holds the clusters' points
-  as well as their cameras; a track takes the point of the model nearest the anchor, with the
-  observations that model kept), the other tracks are triangulated with the merged poses, then
+  as well as their cameras; a track takes the point that the most of its observations saw in
+  one model, with the observations that model kept), the other tracks are triangulated with the merged poses, then
   global BA and filtering alternate with re-triangulation until it changes at most COLMAP's
   0.0005 of the observations (at most five BAs).  Starting from the clusters' points, not
   from a triangulation, matters where a cluster's self-calibration differs from the pooled

@@ -81,7 +81,8 @@ def merged_poses(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3
 
 def merged_points(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim3]):
     """The local models' own points in the anchor frame, nearest-to-anchor model first (Alg. 2's
-    merged cluster ``C_final`` holds them with the cameras): ``(names, keypoints, point_of_row,
+    merged cluster ``C_final`` holds them with the cameras; the order breaks ties between points
+    of a track seen by as many rows in two models): ``(names, keypoints, point_of_row,
     xyz)``, one row per observation (image name, keypoint index, point number), the points
     numbered in that order (``MapperState.seed_points``)."""
     names: list[str] = []
