@@ -3,8 +3,9 @@
 The paper's merging (section 3.2, Alg. 2) and global refinement (Figure 1) on the local models
 ``map`` left in ``WORK/clusters``: the cluster graph and its merge plan
 (``sfm.merge.cluster_graph``), every model moved into its anchor's frame
-(``sfm.merge.alignment``), then all tracks re-triangulated and bundle-adjusted with the merged
-poses (``sfm.merge.refinement``).  One model per merge component, largest first.
+(``sfm.merge.alignment``) with its points, then the merged model bundle-adjusted and
+re-triangulated in turn (``sfm.merge.refinement``).  One model per merge component, largest
+first.
 """
 
 from __future__ import annotations

@@ -209,9 +209,12 @@ def refine_text(models: list[dict], before_points: int, calibration: list[str] =
                f"the principal point only where the photos determine them:{cameras}" if cameras else "")
     return f"""## 6. Refine: one bundle adjustment over the merged model
 
-**What it does.** With every camera in the anchor's frame, all tracks of the scene are
-triangulated again and a global bundle adjustment refines all cameras and points; the two
-alternate until re-triangulation changes almost nothing (COLMAP's global refinement).
+**What it does.** With every camera in the anchor's frame, each track starts from its point in
+the local model where the most of its observations saw it, moved with that model (a local
+model's points fit its own calibration, which the merged camera averages), the other tracks are
+triangulated, and a global bundle adjustment refines all cameras and points; bundle adjustment
+and re-triangulation alternate until re-triangulation changes almost nothing (COLMAP's global
+refinement).
 
 **Paper.** Figure 1's last step: after merging, a final bundle adjustment ("in practice, it is
 enough to perform them once").
