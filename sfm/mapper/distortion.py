@@ -49,8 +49,8 @@ SIGNIFICANCE_LEVEL = 0.9973
 @lru_cache(maxsize=None)
 def significance_chi2(dof: int) -> float:
     """Chi-square quantile of ``dof`` degrees of freedom at :data:`SIGNIFICANCE_LEVEL` (SciPy's
-    inverse of the upper tail, ``chdtri``: ``scipy.stats`` would add half a second to the import
-    of every process that maps)."""
+    inverse of the upper tail, ``chdtri``: ``scipy.stats`` is a heavy import for every process
+    that maps)."""
     return float(chdtri(dof, 1.0 - SIGNIFICANCE_LEVEL))
 
 
