@@ -416,16 +416,17 @@ class Database:
         return g.inverted() if image_id1 > image_id2 else g
 
     def read_two_view_geometries(
-        self, min_config: int = 2, min_inliers: int = 0, image_ids: Iterable[int] | None = None
+        self, min_config: int = 2, min_inliers: int = 0, image_ids: Iterable[int] | None = None,
+        touching: bool = False,
     ) -> dict[tuple[int, int], TwoViewGeometry]:
         """Geometries with config >= min_config and >= min_inliers, keyed (id1, id2), id1 < id2;
-        with ``image_ids``, only the pairs of two of those images."""
+        with ``image_ids``, only the pairs of two of those images (``touching``: of at least one)."""
         sql = f"SELECT {GEOMETRY_COLUMNS} FROM two_view_geometries WHERE config>=? AND rows>=?"
         params: tuple = (int(min_config), int(min_inliers))
         if image_ids is not None:
             ids = json.dumps(sorted(int(i) for i in image_ids))
-            sql += (f" AND pair_id / {MAX_IMAGE_ID} IN (SELECT value FROM json_each(?))"
-                    f" AND pair_id % {MAX_IMAGE_ID} IN (SELECT value FROM json_each(?))")
+            sql += (f" AND (pair_id / {MAX_IMAGE_ID} IN (SELECT value FROM json_each(?))"
+                    f" {'OR' if touching else 'AND'} pair_id % {MAX_IMAGE_ID} IN (SELECT value FROM json_each(?)))")
             params += (ids, ids)
         rows = self._conn.execute(sql, params)
         return {image_ids_from_pair_id(r[0]): _decode_geometry(r) for r in rows}

@@ -28,6 +28,9 @@ class MapperOptions(Options):
     max_reproj_error: float = option(
         4.0, "Reprojection error in pixels above which an observation is an outlier (COLMAP: 4).", above=0)
     min_tri_angle: float = option(1.5, "Smallest triangulation angle in degrees of a point (COLMAP: 1.5).", min=0)
+    ignore_two_view_tracks: bool = option(
+        True, "Triangulate a track seen by only two images only in the initial pair (COLMAP: "
+        "tri_ignore_two_view_tracks 1).")
     local_ba_num_images: int = option(
         6, "Images the local BA after each registration optimises (COLMAP: 6).", min=1)
     global_ba_ratio: float = option(

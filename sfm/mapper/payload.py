@@ -40,4 +40,7 @@ class MapperInput:
     keypoints: list[np.ndarray]
     pairs: list[tuple[int, int, np.ndarray, int]]
     colors: list[np.ndarray] | None = None  # per image (K_k, 3) uint8 RGB at each keypoint, or (0, 3): unknown
+    # per image (K_k,): each keypoint's verified matches over every pair of the database that
+    # holds the image, inside the cluster or not (None: counted over ``pairs``)
+    match_counts: list[np.ndarray] | None = None
     label: str = "C0"

@@ -54,8 +54,9 @@ class ClusterPayloads(Sequence[MapperInput]):
             return [self[j] for j in range(len(self))[k]]
         ids, images, cams = self.groups[k], self.images, self.cams
         with Database(self.db_path, readonly=True) as db:
+            # pairs with images outside the cluster too: they count each keypoint's matches
             geoms = db.read_two_view_geometries(min_config=2, min_inliers=self.min_inliers,
-                                                image_ids=None if self.whole else ids)
+                                                image_ids=None if self.whole else ids, touching=True)
             keypoints = db.read_all_keypoints(ids)
             colors = db.read_keypoint_colors(ids)
         local = {iid: n for n, iid in enumerate(ids)}
@@ -66,11 +67,16 @@ class ClusterPayloads(Sequence[MapperInput]):
         }
         pairs = [(local[a], local[b], g.inlier_matches.astype(np.int32), int(g.config))
                  for (a, b), g in geoms.items() if a in local and b in local]
+        match_counts = [np.zeros(len(keypoints.get(i, ())), np.int32) for i in ids]
+        for (a, b), g in geoms.items():
+            for image, column in ((a, 0), (b, 1)):
+                if image in local:
+                    np.add.at(match_counts[local[image]], g.inlier_matches[:, column], 1)
         del geoms
         return MapperInput(
             image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],
             cameras=cameras, keypoints=[_with_scale(keypoints.pop(i, np.zeros((0, 2)))) for i in ids],
-            pairs=pairs, label=self.labels[k],
+            pairs=pairs, label=self.labels[k], match_counts=match_counts,
             colors=[colors.pop(i, _NO_COLORS) for i in ids] if colors else None,
         )
 
