@@ -15,6 +15,7 @@ from PIL import Image
 import sfm.cli as cli
 from backend.camera_models import project, unproject
 from sfm.core.model import Camera
+from sfm.errors import InputError
 from sfm.execution.local import LocalExecutor
 from sfm.io.colmap_model import read_model, read_ply, write_model
 from sfm.io.nerfstudio import APPLIED_TRANSFORM, read_nerfstudio, write_nerfstudio
@@ -39,7 +40,7 @@ def lens_model(tmp_path_factory):
     """A mapped synthetic scene seen through an OPENCV lens, and images of a known pattern
     taken through the refined camera (so pixels and model agree exactly)."""
     root = tmp_path_factory.mktemp("lens")
-    opts = SynthOptions(scene="orbit", num_images=10, observations_per_image=600, seed=3, width=320, height=240,
+    opts = SynthOptions(scene="orbit", num_images=10, observations_per_image=1500, seed=3, width=320, height=240,
                         focal=280.0)
     scene = make_scene(opts)
     f, cx, cy = scene.focal, (scene.width - 1) / 2, (scene.height - 1) / 2
@@ -121,6 +122,13 @@ def test_undistorted_camera_has_no_blank_pixels():
     assert np.all((src >= -0.5) & (src <= [639.5, 479.5]))
     assert pin.width > 0.9 * 640 and pin.height > 0.9 * 480  # ... and is the largest such rectangle, nearly
     assert undistorted_camera(Camera(1, "SIMPLE_PINHOLE", 64, 48, np.array([50.0, 31.5, 23.5]))).width == 64
+
+
+def test_a_lens_that_folds_inside_the_image_cannot_be_undistorted_and_says_so():
+    """k2 = -0.6 turns the radial map back before the image's corners: no ray reaches them."""
+    folding = Camera(3, "OPENCV", 320, 240, np.array([268.0, 269.0, 159.5, 119.5, -0.09, -0.6, 0.0, 0.0]))
+    with pytest.raises(InputError, match="camera 3 .*folds back inside the image"):
+        undistorted_camera(folding)
 
 
 def test_nerfstudio_round_trip(lens_model, tmp_path):

@@ -49,6 +49,9 @@ def undistorted_camera(camera: Camera) -> Camera:
     right = edge(np.column_stack([np.full_like(ys, w - 1), ys]))[:, 0].min()
     top = edge(np.column_stack([xs, np.zeros_like(xs)]))[:, 1].max()
     bottom = edge(np.column_stack([xs, np.full_like(xs, h - 1)]))[:, 1].min()
+    if not np.all(np.isfinite([left, right, top, bottom])):
+        raise InputError(f"camera {camera.camera_id} ({camera.model} {np.round(camera.params, 4).tolist()}): its "
+                         "distortion folds back inside the image, so its edge pixels have no ray to undistort to")
     new_w = int(np.clip(np.floor((right - left) * fx) + 1, MIN_SCALE * w, MAX_SCALE * w))
     new_h = int(np.clip(np.floor((bottom - top) * fy) + 1, MIN_SCALE * h, MAX_SCALE * h))
     cx = (new_w - 1) / 2.0 - fx * (left + right) / 2.0
