@@ -108,7 +108,7 @@ def _lens_field_error(params: np.ndarray, truth: np.ndarray, f: float, cx: float
 def test_opencv_recovers_a_wide_angle_lens_simple_radial_cannot_hold(tmp_path):
     """A phone-like lens with k1, k2, p1, p2: OPENCV recovers the lens (fx and fy within 0.5%,
     k1, p1, p2, and the distortion within 0.3 px over the inscribed circle, where a lens without
-    k2, p1, p2 is off by 3 px), and its cameras' rotations are several times closer to the truth
+    k2, p1, p2 is off by pixels), and its cameras' rotations are several times closer to the truth
     than SIMPLE_RADIAL's."""
     opts, scene, pairs = _lens_scene(20)
     f, cx, cy = scene.focal, (scene.width - 1) / 2, (scene.height - 1) / 2

@@ -18,7 +18,7 @@ from backend.camera_models import focal_lengths, has_bogus_params, reprojection_
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.options import MapperOptions
 from sfm.features.sift import localization_sigma
-from sfm.mapper.tracks import build_tracks, work_cuts
+from sfm.mapper.tracks import build_tracks, keypoint_match_counts, two_view_tracks, work_cuts
 from sfm.mapper.triangulation import depths, max_triangulation_angles, triangulate_dlt
 
 log = logging.getLogger(__name__)
@@ -82,7 +82,12 @@ class MapperState:
         self._camera_rows = [order[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
         self._update_normalised()
         self.num_tracks = tracks.num_tracks
-        self.two_view_track = self._two_view_tracks(payload)
+        counts = payload.match_counts
+        if counts is None:  # the payload's own pairs are the whole database
+            counts = keypoint_match_counts([len(k) for k in payload.keypoints],
+                                           ((i if side == 0 else j, m[:, side])
+                                            for (i, j), (m, _) in self.pair_matches.items() for side in (0, 1)))
+        self.two_view_track = two_view_tracks(tracks, counts)
         self.used = np.zeros(n, dtype=bool)  # belongs to a finished model
         # de-register the images of cameras whose intrinsics became degenerate (off when no
         # registration follows, as in the refinement of merged poses)
@@ -90,24 +95,6 @@ class MapperState:
         self._reset_model()
         log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
                   len(self.pair_matches), self.num_tracks, len(self.obs_image))
-
-    def _two_view_tracks(self, payload: MapperInput) -> np.ndarray:
-        """Which tracks are COLMAP's two-view observations (``tri_ignore_two_view_tracks``):
-        two keypoints that each have one verified match in the whole database, so no third
-        image confirms them.  A track cut to two rows by the cluster's edge, whose keypoints
-        match images outside it, is not one."""
-        offsets = np.concatenate([[0], np.cumsum([len(k) for k in payload.keypoints])])
-        if payload.match_counts is not None:
-            counts = np.concatenate([np.zeros(0, np.int64), *map(np.asarray, payload.match_counts)])
-        else:
-            counts = np.zeros(offsets[-1], np.int64)
-            for (i, j), (m, _) in self.pair_matches.items():
-                np.add.at(counts, offsets[i] + m[:, 0], 1)
-                np.add.at(counts, offsets[j] + m[:, 1], 1)
-        if self.num_tracks == 0:
-            return np.zeros(0, dtype=bool)
-        single = counts[offsets[self.obs_image] + self.obs_kp] == 1
-        return (np.diff(self.starts) == 2) & (np.add.reduceat(single.astype(np.int64), self.starts[:-1]) == 2)
 
     def release_pairs(self) -> None:
         """Drop the verified matches once the tracks are built, for a caller that never picks
@@ -295,8 +282,8 @@ class MapperState:
         reprojects within ``max_reproj_error`` in front of the camera, a point if it keeps two
         rows and a triangulation angle >= ``min_tri_angle``.  Two passes: all rows, then the
         inliers of the first pass.  With ``ignore_two_view_tracks``, two-view tracks
-        (:meth:`_two_view_tracks`) are left out once the model has more than its initial pair.  Returns the number of new
-        valid points."""
+        (:func:`sfm.mapper.tracks.two_view_tracks`) are left out once the model has more than
+        its initial pair.  Returns the number of new valid points."""
         lengths = self.starts[tracks + 1] - self.starts[tracks]
         if self.opts.ignore_two_view_tracks and self.num_registered > 2:
             # COLMAP's tri_ignore_two_view_tracks: a match no third image confirms is a weak,

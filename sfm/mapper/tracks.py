@@ -95,6 +95,29 @@ def build_tracks(num_keypoints: np.ndarray, matches: Iterable[tuple[int, int, np
     return Tracks(np.concatenate(parts_img).astype(np.int64), np.concatenate(parts_kp).astype(np.int64), starts.astype(np.int64))
 
 
+def keypoint_match_counts(num_keypoints: Iterable[int], ends: Iterable[tuple[int, np.ndarray]]) -> list[np.ndarray]:
+    """Each keypoint's number of verified matches, per image: ``ends`` yields one side of a
+    pair's matches at a time, ``(image, keypoint indices of its inlier matches)``."""
+    sizes = np.asarray(list(num_keypoints), dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    nodes = [offsets[i] + np.asarray(keypoints, dtype=np.int64) for i, keypoints in ends]
+    flat = np.bincount(np.concatenate(nodes) if nodes else np.zeros(0, np.int64), minlength=int(offsets[-1]))
+    return np.split(flat, offsets[1:-1])
+
+
+def two_view_tracks(tracks: Tracks, match_counts: list[np.ndarray]) -> np.ndarray:
+    """Which tracks are COLMAP's two-view observations (``tri_ignore_two_view_tracks``): two
+    keypoints that each have one verified match (``match_counts``, per image, over the whole
+    database), so no third image confirms them.  A track cut to two rows by a cluster's edge,
+    whose keypoints match images outside the cluster, is not one."""
+    if tracks.num_tracks == 0:
+        return np.zeros(0, dtype=bool)
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in match_counts])])
+    single = np.concatenate(match_counts)[offsets[tracks.image] + tracks.keypoint] == 1
+    singles = np.add.reduceat(single.astype(np.int64), tracks.starts[:-1])
+    return (tracks.lengths == 2) & (singles == 2)
+
+
 def _triangle_support(edges_u: np.ndarray, edges_v: np.ndarray, n: int, block_entries: int = 4_000_000) -> np.ndarray:
     """Number of common neighbours of each edge's ends (triangles through the edge).  A right
     match inside a track seen by L images is confirmed by up to L - 2 others; a wrong match

@@ -15,6 +15,7 @@ import numpy as np
 from sfm.features.sift import keypoint_scales
 from sfm.io.database import Database
 from sfm.mapper.payload import CameraPrior, MapperInput
+from sfm.mapper.tracks import keypoint_match_counts
 from sfm.stages.extract_writer import given_camera_ids
 
 
@@ -67,11 +68,10 @@ class ClusterPayloads(Sequence[MapperInput]):
         }
         pairs = [(local[a], local[b], g.inlier_matches.astype(np.int32), int(g.config))
                  for (a, b), g in geoms.items() if a in local and b in local]
-        match_counts = [np.zeros(len(keypoints.get(i, ())), np.int32) for i in ids]
-        for (a, b), g in geoms.items():
-            for image, column in ((a, 0), (b, 1)):
-                if image in local:
-                    np.add.at(match_counts[local[image]], g.inlier_matches[:, column], 1)
+        match_counts = keypoint_match_counts((len(keypoints.get(i, ())) for i in ids),
+                                             ((local[image], g.inlier_matches[:, side])
+                                              for (a, b), g in geoms.items()
+                                              for side, image in enumerate((a, b)) if image in local))
         del geoms
         return MapperInput(
             image_ids=list(ids), names=list(self.names[k]), camera_ids=[images[i].camera_id for i in ids],

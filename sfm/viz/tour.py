@@ -136,7 +136,8 @@ def map_text(results: list[dict], num_images: int, direct: bool, options) -> str
 
 **What it does.** Incremental SfM in each cluster, as COLMAP does: an initial pair reconstructed
 from its essential matrix, then image after image registered by PnP RANSAC, its new tracks
-triangulated (a match no third image confirms only in the initial pair), bundle adjustment (local, and global whenever the model grew by
+triangulated (a match no third image confirms only in the initial pair), bundle adjustment
+(local, and global whenever the model grew by
 {round(100 * (options.global_ba_ratio - 1))}%); images that cannot be registered may start a second model.
 
 **Paper.** Section 3.2: "each cluster can be reconstructed using a local SfM approach ... we
