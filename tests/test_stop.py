@@ -1,6 +1,8 @@
 """Ctrl-C (SIGINT) or SIGTERM mid-stage ends a real ``python -m sfm.cli reconstruct`` with one
 line saying where it stopped and that rerunning resumes, leaves no process behind (pool
-workers, their fork server), and the rerun finishes the model (``sfm.execution.processes``)."""
+workers, their fork server), and the rerun finishes the model; a run that ends normally has
+what it left in its process group ended, without waiting on zombies
+(``sfm.execution.processes``)."""
 
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from sfm.execution.processes import descendants
+from sfm.execution import processes
+from sfm.execution.processes import descendants, group_members
 from sfm.stages.synth import run_synth
 from sfm.synthetic.options import RenderOptions, SynthOptions
 from sfm.synthetic.rendered import write_rendered_scene
@@ -112,3 +115,53 @@ def test_sigterm_during_the_clusters_local_sfm_stops_every_worker(tmp_path):
     done, started = _stop_mid_stage(argv, ws / "log.txt", "initial pair", signal.SIGTERM)
     _check_stopped(done, started, 143, "SIGTERM", "map (")
     assert json.loads((ws / "report.json").read_text())["status"] == "stopped"
+
+
+def _zombie_in_own_group() -> subprocess.Popen:
+    """A process in a process group of its own that has exited and is not reaped yet."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"], preexec_fn=os.setpgrp)
+    deadline = time.monotonic() + 60
+    while "State:\tZ" not in Path(f"/proc/{proc.pid}/status").read_text():
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    return proc
+
+
+def _record_killpg(monkeypatch) -> list[int]:
+    sent: list[int] = []
+    real = os.killpg
+
+    def killpg(pgid: int, signum: int) -> None:
+        sent.append(signum)
+        real(pgid, signum)
+
+    monkeypatch.setattr(processes.os, "killpg", killpg)
+    return sent
+
+
+def test_the_end_of_a_run_does_not_wait_for_zombies_to_be_reaped(monkeypatch):
+    zombie = _zombie_in_own_group()
+    try:
+        assert group_members(zombie.pid) == []
+        sent = _record_killpg(monkeypatch)
+        processes._end_group(zombie.pid)
+        # a zombie holds nothing: no wait for its reaping, so no SIGKILL after the grace time
+        assert sent == [signal.SIGTERM]
+    finally:
+        zombie.wait()
+
+
+def test_the_end_of_a_run_ends_what_is_left_in_its_group(monkeypatch):
+    leftover = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"], preexec_fn=os.setpgrp)
+    try:
+        deadline = time.monotonic() + 60
+        while group_members(leftover.pid) != [leftover.pid]:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        sent = _record_killpg(monkeypatch)
+        processes._end_group(leftover.pid)
+        assert sent == [signal.SIGTERM]
+        assert leftover.wait(timeout=60) == -signal.SIGTERM
+    finally:
+        leftover.kill()
+        leftover.wait()

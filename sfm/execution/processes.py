@@ -107,6 +107,19 @@ def end_tree(child: subprocess.Popen) -> None:
     child.wait()
 
 
+def group_members(pgid: int) -> list[int]:
+    """The live processes of process group ``pgid``, from ``/proc``.  A zombie is not one: it
+    has ended and holds nothing but its process id until its parent reaps it, and an orphan's
+    parent is init, which reaps when it gets to it (a second or more in some containers)."""
+    members = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            st = _stat(int(entry))
+            if st is not None and st[1] == pgid and _alive(int(entry)):
+                members.append(int(entry))
+    return members
+
+
 def _end_group(pgid: int) -> None:
     """Whatever a child that ended normally left in its process group (a fork server)."""
     try:
@@ -115,9 +128,7 @@ def _end_group(pgid: int) -> None:
         return
     deadline = time.monotonic() + GRACE_S
     while time.monotonic() < deadline:
-        try:
-            os.killpg(pgid, 0)
-        except ProcessLookupError:
+        if not group_members(pgid):
             return
         time.sleep(0.02)
     try:
