@@ -311,6 +311,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 WORKSPACE_COMMANDS = {"extract", "match", "cluster", "map", "merge", "reconstruct", "extend", "demo", "synth"}
 RESUMABLE = {"extract", "match", "cluster", "map", "merge", "reconstruct", "extend"}
 REPORTS_ITSELF = {"reconstruct", "extend", "demo", "synth"}  # start and finish report.json in their stage code
+POOLED = {"extract", "match", "map", "reconstruct", "extend", "demo"}  # may run tasks in a local process pool
 COMMANDS: list[tuple[str, str, object, list[tuple[str, dict]]]] = [
     ("extract", "SIFT features of every image into WORK/database.db", cmd_extract,
      [("--images", {"required": True, "help": "image folder (searched recursively)"}),
@@ -497,12 +498,23 @@ def _one_line(exc: BaseException, workspace: Path | None) -> tuple[str, int]:
     return f"internal error: {type(exc).__name__}: {exc}{details}", 1
 
 
+def _start_pool_server(args: argparse.Namespace) -> None:
+    """A command that may run a local process pool starts its fork server
+    (``sfm.execution.process_pool``) before it imports its stages: the server's imports then
+    run beside this process's instead of after them, on the way to the first pool."""
+    if args.command in POOLED and getattr(args, "executor", "local") == "local" and getattr(args, "workers", 0) != 1:
+        from sfm.execution.process_pool import start_pool_server
+
+        start_pool_server()
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the parsed command here: workspace, lock, logging, the command; one line on error."""
     workspace = None
     try:
         workspace = _workspace_of(args)
         with WorkspaceLock(workspace, args.command_line) if workspace else contextlib.nullcontext():
+            _start_pool_server(args)
             setup_logging(workspace, args.verbosity)
             reports_here = workspace is not None and args.command not in REPORTS_ITSELF
             if reports_here:
