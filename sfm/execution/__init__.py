@@ -29,7 +29,9 @@ Modules, in reading order:
 
 - ``sfm.execution.options``: ``ExecutionOptions`` and ``make_executor``.
 - ``sfm.execution.local``: ``LocalExecutor``, ``TaskResult``, single-threaded workers.
-- ``sfm.execution.process_pool``: the start method of the local pools (forkserver, preload).
+- ``sfm.execution.process_pool``: the start method of the local pools (forkserver, preload), one
+  thread per worker.
+- ``sfm.execution.spare_cores``: a task run in this process hands a piece of its work to an idle core.
 - ``sfm.execution.dask_cluster``: ``DaskExecutor``, the same ``map`` on a Dask cluster.
 
 Paper: section 3.2 and the abstract's "image clusters are distributed into servers to execute

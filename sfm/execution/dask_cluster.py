@@ -24,7 +24,8 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from sfm.errors import InputError
-from sfm.execution.local import TaskResult, run_task, single_threaded
+from sfm.execution.local import TaskResult, run_task
+from sfm.execution.process_pool import single_threaded
 from sfm.execution.logs import collect_records, replay
 
 log = logging.getLogger(__name__)

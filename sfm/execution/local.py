@@ -12,13 +12,14 @@ instead of paths.
 item: in input order (``ordered=True``: extraction and matching write the database in a fixed
 order, so any number of workers gives the same files) or as tasks finish.  At most two tasks
 per worker are in flight, so lazily built items (image bytes, cluster payloads) are built only
-when a worker is about to need them.  A task that raises either stops the map
+when a worker is about to need them.  A map that runs its tasks in this process lends the other
+workers' cores to them (``sfm.execution.spare_cores``).  A task that raises either stops the map
 (``errors="raise"``) or becomes a :class:`TaskResult` with its ``error`` (``errors="return"``: a
 failed cluster must not stop the others).  A worker process that dies (killed by the kernel for
 memory, say) raises :class:`WorkerDied`.
 
 Each worker process runs one task at a time with OpenCV's and BLAS's own threads limited to one
-(:func:`single_threaded`): the parallelism is across processes.  Its log messages and progress
+(``sfm.execution.process_pool.single_threaded``): the parallelism is across processes.  Its log messages and progress
 events reach this process as they are made (``sfm.execution.logs``).  One worker runs the
 tasks in this process.
 """
@@ -37,7 +38,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from sfm.execution.logs import forwarded_logs, init_worker
-from sfm.execution.process_pool import pool_context
+from sfm.execution.process_pool import pool_context, single_threaded
+from sfm.execution.spare_cores import spare_cores
 
 log = logging.getLogger(__name__)
 
@@ -60,20 +62,6 @@ class WorkerDied(RuntimeError):
 
 def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
-
-
-def single_threaded() -> None:
-    """Limit OpenCV's and BLAS's thread pools to one thread in this process: each worker runs
-    one task, and several workers' thread pools would fight over the cores."""
-    import cv2
-
-    cv2.setNumThreads(1)
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(1)
-    except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
-        pass
 
 
 def _init_pool_worker(queue, level: int) -> None:
@@ -125,7 +113,8 @@ class LocalExecutor:
         size = self._pool_size(count, max_workers)
         if size <= 1:
             for index, item in enumerate(items):
-                value, error, worker = run_task(func, item, catch)
+                with spare_cores(self.workers - 1):  # the other workers' cores idle meanwhile
+                    value, error, worker = run_task(func, item, catch)
                 yield TaskResult(index, value, error, worker)
             return
         context = pool_context()

@@ -1,4 +1,5 @@
-"""The start method of this package's local process pools (extract, match, map).
+"""The start method of this package's local process pools (extract, match, map), and the one
+thread each of their workers runs (:func:`single_threaded`).
 
 ``forkserver`` where the platform has it: one server process imports the pipeline once
 (``PRELOAD``), and every pool's workers are forked from it, so a pool starts with its imports
@@ -42,3 +43,17 @@ def start_pool_server() -> None:
         from multiprocessing import forkserver
 
         forkserver.ensure_running()
+
+
+def single_threaded() -> None:
+    """Limit OpenCV's and BLAS's thread pools to one thread in this process: each worker runs
+    one task, and several workers' thread pools would fight over the cores."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - scikit-learn brings threadpoolctl
+        pass

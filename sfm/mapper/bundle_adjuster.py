@@ -48,6 +48,7 @@ from backend.track_subset import select_tracks
 from sfm.mapper.distortion import DistortionTest, check_distortion, distortion_components, hold_components
 from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, check_principal_point, confirm_by_halves, split_halves
 from sfm.core import progress
+from sfm.execution.spare_cores import run_beside
 from sfm.mapper.state import ROW_CHUNK, MapperState
 from sfm.mapper.tracks import work_cuts
 from sfm.mapper.triangulation import refine_points
@@ -56,6 +57,23 @@ log = logging.getLogger(__name__)
 
 GROWING_TOLERANCE = 1e-3
 FINAL_TOLERANCE = 1e-4
+
+
+def half_calibration(task: tuple[BAProblem, BAOptions]):
+    """One half of the principal point's split-sample test (:meth:`BundleAdjuster._halves`):
+    the problem of one camera's half of the images, bundle-adjusted alone with ``options`` (it
+    stops as a growing model's global BA does, 25 iterations or a relative decrease of 1e-3),
+    then the calibration step from where it stopped, which completes the estimate to first
+    order: a half that converges slowly is one that determines the principal point poorly, and
+    its covariance says so.  ``(the camera's parameters, (Cal3DS2 step, (9, 9) covariance) or
+    None for a singular system, iterations, seconds)``; arrays only, so a spare core's process
+    can compute it (``sfm.execution.spare_cores``)."""
+    problem, options = task
+    result = bundle_adjust(problem, options)
+    adjusted = replace(problem, camera_params=result.camera_params, rotations=result.rotations,
+                       translations=result.translations, points=result.points)
+    [step] = calibration_step(adjusted, options)
+    return np.asarray(result.camera_params[0], float), step, result.iterations, result.time_s
 
 
 class BundleAdjuster:
@@ -285,13 +303,12 @@ class BundleAdjuster:
         camera ``camera``'s images among ``free``, split in two by :func:`split_halves`; each half
         bundle-adjusted alone on the observations of ``tracks`` in its images (every pose and
         point free, the camera's intrinsics all refined, the gauge held by the BA's priors), then
-        its Cal3DS2 estimate and covariance.  The BA stops as a growing model's global BA does
-        (25 iterations, relative decrease 1e-3) and the calibration step from where it stopped
-        completes the estimate to first order: a half that converges slowly is one that
-        determines the principal point poorly, and its covariance says so.  Every
-        track, unless the two halves together would exceed twice ``ba_max_observations``: then
-        the track subset of :meth:`_subset`.  None when a half has fewer than
-        ``MIN_HALF_IMAGES`` images or its system is singular."""
+        its Cal3DS2 estimate and covariance (:func:`half_calibration`).  The two are independent:
+        the first runs on a spare core when this task has one (``sfm.execution.spare_cores``: a
+        map stage of one cluster), with the same result as here.  Every track, unless the two
+        halves together would exceed twice ``ba_max_observations``: then the track subset of
+        :meth:`_subset`.  None when a half has fewer than ``MIN_HALF_IMAGES`` images or its
+        system is singular."""
         s = self.state
         budget = self._observation_budget()
         if budget and len(s.inlier_rows(tracks)[0]) > 2 * budget:
@@ -299,34 +316,28 @@ class BundleAdjuster:
         images = free[s.cam_index[free] == camera]
         centers = -np.einsum("nji,nj->ni", s.R[images], s.t[images])
         low = split_halves(centers)
-        halves = []
-        for half in (images[low], images[~low]):
-            if len(half) < MIN_HALF_IMAGES:
-                return None
-            estimate = self._half_estimate(camera, half, tracks, loss_scale)
-            if estimate is None:
-                return None
-            halves.append(estimate)
-        return tuple(halves)
-
-    def _half_estimate(self, camera: int, images: np.ndarray, tracks: np.ndarray, loss_scale: float):
-        """(Cal3DS2 estimate, (9, 9) covariance) of ``camera`` from ``images`` alone (see
-        :meth:`_halves`); None without a usable system."""
-        s = self.state
-        problem, _, _, _ = self._problem(images, tracks, alone=True)
-        if problem is None:
+        halves = (images[low], images[~low])
+        if min(len(half) for half in halves) < MIN_HALF_IMAGES:
+            return None
+        problems = [self._problem(half, tracks, alone=True)[0] for half in halves]
+        if any(problem is None for problem in problems):
             return None
         options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
                             max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
-        result = bundle_adjust(problem, options)
-        log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label, camera,
-                  len(images), len(problem.obs_image), result.iterations, result.time_s)
-        adjusted = replace(problem, camera_params=result.camera_params, rotations=result.rotations,
-                           translations=result.translations, points=result.points)
-        [step] = calibration_step(adjusted, options)
-        if step is None:
-            return None
-        return ds2_from_params(s.priors[camera].model, result.camera_params[0]) + step[0], step[1]
+        first = run_beside(half_calibration, (problems[0], options))
+        try:
+            second = half_calibration((problems[1], options))
+        finally:
+            solved = [first(), None]  # the side process is waited for (and ended) whatever happened here
+        solved[1] = second
+        estimates = []
+        for half, problem, (params, step, iterations, seconds) in zip(halves, problems, solved):
+            log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label,
+                      camera, len(half), len(problem.obs_image), iterations, seconds)
+            if step is None:
+                return None
+            estimates.append((ds2_from_params(s.priors[camera].model, params) + step[0], step[1]))
+        return tuple(estimates)
 
     def forget_calibration_tests(self) -> None:
         """Start a new model: its first final BA tests every camera's principal point and

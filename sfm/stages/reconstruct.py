@@ -17,7 +17,9 @@ from pathlib import Path
 from sfm.clustering.options import ClusterOptions
 from sfm.core.options import OptionError, options_from, unknown_names
 from sfm.execution.options import ExecutionOptions, make_executor
+from sfm.execution.local import LocalExecutor
 from sfm.execution.process_pool import start_pool_server
+from sfm.execution.spare_cores import spare_cores
 from sfm.features.options import ExtractOptions
 from sfm.errors import InputError
 from sfm.io.report import finish_run, read_report, start_run, update_report
@@ -72,7 +74,11 @@ def run_reconstruct(workspace: Path, images: Path | None, options: ReconstructOp
     if map_result.direct:  # one cluster: its models are the final ones, nothing to merge
         update_report(workspace, {}, {"merge": 0.0, "final_ba": 0.0})
     else:
-        run_merge(workspace, options.mapper, options.merge, recorder)
+        # the merge runs in this process while the local workers idle: its final BA's
+        # split-sample test may use their cores (sfm.execution.spare_cores)
+        local = executor is None or not executor.remote
+        with spare_cores((executor or LocalExecutor()).workers - 1 if local else 0):
+            run_merge(workspace, options.mapper, options.merge, recorder)
     return read_report(workspace)
 
 
