@@ -305,7 +305,8 @@ class BundleAdjuster:
         point free, the camera's intrinsics all refined, the gauge held by the BA's priors), then
         its Cal3DS2 estimate and covariance (:func:`half_calibration`).  The two are independent:
         the first runs on a spare core when this task has one (``sfm.execution.spare_cores``: a
-        map stage of one cluster), with the same result as here.  Every track, unless the two
+        map stage of one cluster) and the two fit in one BA's memory budget together, with the
+        same result as here.  Every track, unless the two
         halves together would exceed twice ``ba_max_observations``: then the track subset of
         :meth:`_subset`.  None when a half has fewer than ``MIN_HALF_IMAGES`` images or its
         system is singular."""
@@ -324,14 +325,15 @@ class BundleAdjuster:
             return None
         options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
                             max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
-        first = run_beside(half_calibration, (problems[0], options))
+        together = sum(len(problem.obs_image) for problem in problems)
+        side = run_beside if not budget or together <= budget else lambda func, item: lambda: func(item)
+        first = side(half_calibration, (problems[0], options))  # both in memory at once: within one BA's budget
         try:
             second = half_calibration((problems[1], options))
         finally:
-            solved = [first(), None]  # the side process is waited for (and ended) whatever happened here
-        solved[1] = second
+            first_solved = first()  # the side process is waited for (and ended) whatever happened here
         estimates = []
-        for half, problem, (params, step, iterations, seconds) in zip(halves, problems, solved):
+        for half, problem, (params, step, iterations, seconds) in zip(halves, problems, (first_solved, second)):
             log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label,
                       camera, len(half), len(problem.obs_image), iterations, seconds)
             if step is None:
