@@ -72,9 +72,9 @@ def test_the_principal_points_halves_on_a_spare_core_give_the_same_model(tmp_pat
     seen = []
     real = bundle_adjuster.run_beside
 
-    def spy(func, item):
+    def spy(func, item, **kwargs):
         seen.append(spare._SPARE.get())
-        return real(func, item)
+        return real(func, item, **kwargs)
 
     monkeypatch.setattr(bundle_adjuster, "run_beside", spy)
     models = {}
@@ -92,3 +92,8 @@ def test_the_principal_points_halves_on_a_spare_core_give_the_same_model(tmp_pat
         np.testing.assert_array_equal(image.cam_from_world_rotation, models[2].images[image_id].cam_from_world_rotation)
         np.testing.assert_array_equal(image.cam_from_world_translation,
                                       models[2].images[image_id].cam_from_world_translation)
+
+
+def test_a_piece_that_does_not_fit_beside_runs_here():
+    with spare.spare_cores(1):
+        assert spare.run_beside(operator.call, os.getpid, fits=False)() == os.getpid()

@@ -1,6 +1,6 @@
 """Total time of a default ``graphsfm reconstruct``: this checkout against an earlier commit, in one run.
 
-    python tools/bench_against_commit.py --base REF --sets lund_door temple_ring [--repeat N] [--out DIR]
+    python tools/bench_against_commit.py --base REF --sets lund_door temple_ring [--repeat N] [--data DIR] [--out DIR]
 
 The peer here is graphsfm itself at ``--base`` (a commit or tag): its ``sfm/``, ``graph/`` and
 ``backend/`` are exported by ``git archive`` into ``OUT/base``, and each side runs as a user
@@ -16,6 +16,7 @@ medians; refreshes its section of ``tools/BENCHMARKS.md``.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import shutil
@@ -23,7 +24,6 @@ import statistics
 import subprocess
 import sys
 import tarfile
-import io
 import time
 from pathlib import Path
 
@@ -33,9 +33,6 @@ from benchmarks_page import ROOT, add_page_arguments, markdown_table, publish, r
 from sfm.evaluation.ground_truth import read_gt_table
 from sfm.evaluation.metrics import evaluate
 from sfm.io.colmap_model import read_model
-
-DATA = ROOT.parent / "shared" / "data"
-
 
 def export_tree(ref: str, dest: Path) -> str:
     """``sfm/``, ``graph/`` and ``backend/`` of commit ``ref`` into ``dest``; its short hash."""
@@ -73,6 +70,7 @@ def main() -> int:
     parser.add_argument("--base", required=True, help="the earlier commit (or tag) to time against")
     parser.add_argument("--sets", nargs="+", default=["lund_door", "temple_ring"],
                         help="sets of ../shared/data with images/ and gt/cameras_gt_opencv.txt")
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="folder of the real sets")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each side per set (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=Path("/tmp/bench_against_commit"), help="workspaces")
     add_page_arguments(parser)
@@ -82,7 +80,7 @@ def main() -> int:
     sides = {"base": (args.out / "base", base), "head": (ROOT, context["code"])}
     runs, summary = [], []
     for name in args.sets:
-        images, gt = DATA / name / "images", DATA / name / "gt" / "cameras_gt_opencv.txt"
+        images, gt = args.data / name / "images", args.data / name / "gt" / "cameras_gt_opencv.txt"
         if not images.is_dir() or not gt.is_file():
             raise SystemExit(f"{name}: no {images} or {gt}")
         measured = {"base": [], "head": []}

@@ -38,11 +38,12 @@ def spare_cores(count: int) -> Iterator[None]:
         _SPARE.reset(token)
 
 
-def run_beside(func: Callable[[Any], Any], item: Any) -> Callable[[], Any]:
-    """Start ``func(item)`` in a process of its own when a core is spare (:func:`spare_cores`);
-    returns the function that gives its value, waiting for the process, or computing it here
-    when no process ran it (no spare core, or the process failed)."""
-    if _SPARE.get() < 1:
+def run_beside(func: Callable[[Any], Any], item: Any, fits: bool = True) -> Callable[[], Any]:
+    """Start ``func(item)`` in a process of its own when a core is spare (:func:`spare_cores`)
+    and ``fits`` (the caller's word that memory holds this piece and its own at once); returns
+    the function that gives its value, waiting for the process, or computing it here when no
+    process ran it (no spare core, no room, or the process failed)."""
+    if _SPARE.get() < 1 or not fits:
         return lambda: func(item)
     try:
         pool = ProcessPoolExecutor(1, mp_context=pool_context(), initializer=single_threaded)

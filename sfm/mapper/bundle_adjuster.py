@@ -325,9 +325,8 @@ class BundleAdjuster:
             return None
         options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
                             max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
-        together = sum(len(problem.obs_image) for problem in problems)
-        side = run_beside if not budget or together <= budget else lambda func, item: lambda: func(item)
-        first = side(half_calibration, (problems[0], options))  # both in memory at once: within one BA's budget
+        together = sum(len(problem.obs_image) for problem in problems)  # both in memory at once
+        first = run_beside(half_calibration, (problems[0], options), fits=not budget or together <= budget)
         try:
             second = half_calibration((problems[1], options))
         finally:
