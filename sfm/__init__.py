@@ -3,7 +3,8 @@
 ``sfm.reconstruct(images, workspace, **options)`` runs every stage, ``sfm.extend(workspace,
 images, **options)`` adds new photos to a finished model; ``sfm.run_extract``,
 ``run_match``, ``run_cluster``, ``run_map`` and ``run_merge`` run one each (``sfm.api``).  The
-command line (``sfm.cli``) is the same functions behind flags.
+command line (``sfm.cli``) is the same functions behind flags, and the program ``graphsfm``
+(``sfm.__main__``) runs it in a supervised child process.
 
 The rooms, one concept each, in layers, lowest first.  A module imports only from its own room
 or from a lower layer (``tests/test_layering.py`` checks it, and that nothing anywhere imports
@@ -17,6 +18,7 @@ in a cycle):
     5. sfm.merge
     6. sfm.stages, sfm.console
     7. sfm.api, sfm.cli
+    8. sfm.__main__
 
 - ``core``: the data model (cameras, images, points with tracks), rigid geometry, the options
   machinery every stage's options use.

@@ -12,10 +12,10 @@ Errors reach the user as one line on stderr with the exit code of ``sfm.errors``
 allowed (a close match for a mistyped flag or command), then one short usage line, exit code 2.
 ``-v`` (debug) and ``-q`` (warnings only, no progress bars) go anywhere on the line.
 
-The program (``graphsfm``, ``python -m sfm.cli``) runs the command in a child process that it
+The program ``graphsfm`` (``sfm.__main__``) runs :func:`main` in a child process that it
 supervises (``sfm.execution.processes``), so Ctrl-C or SIGTERM ends the run and every process it
-started within a couple of seconds, with one line saying where it stopped; ``main(argv)`` with
-an argument list runs the command in this process (tests).
+started within a couple of seconds, with one line saying where it stopped (:func:`stopped`).
+``main(argv)`` itself runs the command in the calling process (tests, scripts).
 """
 
 from __future__ import annotations
@@ -311,7 +311,6 @@ def cmd_synth(args: argparse.Namespace) -> int:
 WORKSPACE_COMMANDS = {"extract", "match", "cluster", "map", "merge", "reconstruct", "extend", "demo", "synth"}
 RESUMABLE = {"extract", "match", "cluster", "map", "merge", "reconstruct", "extend"}
 REPORTS_ITSELF = {"reconstruct", "extend", "demo", "synth"}  # start and finish report.json in their stage code
-POOLED = {"extract", "match", "map", "reconstruct", "extend", "demo"}  # may run tasks in a local process pool
 COMMANDS: list[tuple[str, str, object, list[tuple[str, dict]]]] = [
     ("extract", "SIFT features of every image into WORK/database.db", cmd_extract,
      [("--images", {"required": True, "help": "image folder (searched recursively)"}),
@@ -498,23 +497,12 @@ def _one_line(exc: BaseException, workspace: Path | None) -> tuple[str, int]:
     return f"internal error: {type(exc).__name__}: {exc}{details}", 1
 
 
-def _start_pool_server(args: argparse.Namespace) -> None:
-    """A command that may run a local process pool starts its fork server
-    (``sfm.execution.process_pool``) before it imports its stages: the server's imports then
-    run beside this process's instead of after them, on the way to the first pool."""
-    if args.command in POOLED and getattr(args, "executor", "local") == "local" and getattr(args, "workers", 0) != 1:
-        from sfm.execution.process_pool import start_pool_server
-
-        start_pool_server()
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the parsed command here: workspace, lock, logging, the command; one line on error."""
     workspace = None
     try:
         workspace = _workspace_of(args)
         with WorkspaceLock(workspace, args.command_line) if workspace else contextlib.nullcontext():
-            _start_pool_server(args)
             setup_logging(workspace, args.verbosity)
             reports_here = workspace is not None and args.command not in REPORTS_ITSELF
             if reports_here:
@@ -539,9 +527,16 @@ def run(args: argparse.Namespace) -> int:
         teardown_logging()
 
 
-def _on_stop(args: argparse.Namespace, signum: int, where: str) -> None:
-    """The supervisor's line when a signal stopped the run (``sfm.execution.processes``)."""
+def stopped(argv: list[str], signum: int, where: str) -> None:
+    """The supervisor's line when a signal stopped the run of ``graphsfm argv``
+    (``sfm.__main__``), and the same line in the workspace's log, its report finished as
+    stopped and its lock freed."""
     name = "Ctrl-C (SIGINT)" if signum == signal.SIGINT else signal.Signals(signum).name
+    try:
+        args = parse(argv)
+    except (ArgumentsError, SystemExit):  # stopped before the child could refuse the arguments
+        print(f"graphsfm: stopped by {name} during {where}", file=sys.stderr, flush=True)
+        return
     line = f"stopped by {name} during {where}"
     if args.command in RESUMABLE:
         line += "; rerun the same command to resume"
@@ -559,10 +554,7 @@ def _on_stop(args: argparse.Namespace, signum: int, where: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``graphsfm ARGS``: the exit code.  Without ``argv`` (the program) the command runs in a
-    supervised child process (module docstring); with it, here."""
-    supervised = argv is None and os.name == "posix" and Path("/proc/self/stat").exists() \
-        and STATUS_FILE_ENV not in os.environ
+    """``graphsfm ARGS`` in this process (``argv``; default ``sys.argv[1:]``): the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = parse(argv)
@@ -572,14 +564,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except SystemExit as exc:  # --help, --version
         return int(exc.code or 0)
-    if supervised:
-        from sfm.execution.processes import supervise
-
-        # The resource tracker of a run that was stopped unlinks its semaphores without a warning.
-        child = ["-W", "ignore:resource_tracker:UserWarning", "-m", "sfm.cli", *argv]
-        return supervise(child, lambda signum, where: _on_stop(args, signum, where))
     return run(args)
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # ``python -m sfm.cli``: the program, as ``python -m sfm``
+    import runpy
+
+    runpy.run_module("sfm", run_name="__main__")

@@ -21,7 +21,7 @@ from sfm.synthetic.rendered import write_rendered_scene
 
 
 def graphsfm(*argv: str) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "sfm.cli", *argv], capture_output=True, text=True, timeout=900,
+    proc = subprocess.run([sys.executable, "-m", "sfm", *argv], capture_output=True, text=True, timeout=900,
                           check=False)
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     return proc
@@ -149,7 +149,7 @@ def test_a_huge_image_is_downscaled_not_held_in_memory(tmp_path):
     ws = tmp_path / "ws"
     code = ("import resource, subprocess, sys; p = subprocess.run(sys.argv[1:]); "
             "print(p.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
-    out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "sfm.cli", "extract", "--images", str(d),
+    out = subprocess.run([sys.executable, "-c", code, sys.executable, "-m", "sfm", "extract", "--images", str(d),
                           "--workspace", str(ws), "--workers", "1", "--no-recording"],
                          capture_output=True, text=True, timeout=900, check=True).stdout.split()
     returncode, peak_kib = int(out[-2]), int(out[-1])

@@ -45,7 +45,7 @@ def test_rendered_synth(tmp_path, capsys):
 )
 def test_errors_are_one_line_with_exit_code(tmp_path, argv, code, message):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
-    proc = subprocess.run([sys.executable, "-m", "sfm.cli", *argv], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "sfm", *argv], capture_output=True, text=True)
     assert proc.returncode == code
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert lines[-1].startswith("graphsfm ") and message in lines[-1]
@@ -55,12 +55,12 @@ def test_errors_are_one_line_with_exit_code(tmp_path, argv, code, message):
 def test_existing_workspace_is_not_overwritten(tmp_path):
     args = ["synth", "--num-images", "5", "--observations-per-image", "100", "--workspace", str(tmp_path)]
     assert main(args) == 0
-    proc = subprocess.run([sys.executable, "-m", "sfm.cli", *args], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "sfm", *args], capture_output=True, text=True)
     assert proc.returncode == 2 and "exists" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_unwritable_workspace(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    proc = subprocess.run([sys.executable, "-m", "sfm.cli", "synth", "--workspace", str(blocker / "w")], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "sfm", "synth", "--workspace", str(blocker / "w")], capture_output=True, text=True)
     assert proc.returncode == 2 and "cannot write to workspace" in proc.stderr and "Traceback" not in proc.stderr

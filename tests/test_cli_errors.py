@@ -31,7 +31,7 @@ def run_main(capsys, *argv: str) -> tuple[int, list[str]]:
 
 def graphsfm(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
-    proc = subprocess.run([sys.executable, "-m", "sfm.cli", *argv], capture_output=True, text=True, timeout=timeout,
+    proc = subprocess.run([sys.executable, "-m", "sfm", *argv], capture_output=True, text=True, timeout=timeout,
                           env=env)
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     return proc

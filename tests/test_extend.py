@@ -100,7 +100,7 @@ def test_cluster_extension_overlaps_the_anchor_where_it_can():
 
 # ------------------------------------------------------------------------------ the command
 def cli(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "sfm.cli", *args, *ARGS], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "sfm", *args, *ARGS], capture_output=True, text=True,
                           timeout=600, check=False)
     if check:
         assert proc.returncode == 0, proc.stderr[-3000:]
@@ -213,7 +213,7 @@ def _keypoint_rows(ws: Path) -> int:
 
 
 def _run_and_kill(args: list[str], during) -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "sfm.cli", *args, *ARGS], stdout=subprocess.DEVNULL,
+    proc = subprocess.Popen([sys.executable, "-m", "sfm", *args, *ARGS], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)

@@ -29,7 +29,7 @@ ARGS = ["--max-cluster-size", "6", "--seed", "0", "--no-recording"]
 
 
 def command(images: Path, ws: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "sfm.cli", "reconstruct", "--images", str(images), "--workspace", str(ws),
+    return [sys.executable, "-m", "sfm", "reconstruct", "--images", str(images), "--workspace", str(ws),
             *ARGS, *extra]
 
 

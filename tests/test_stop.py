@@ -1,4 +1,4 @@
-"""Ctrl-C (SIGINT) or SIGTERM mid-stage ends a real ``python -m sfm.cli reconstruct`` with one
+"""Ctrl-C (SIGINT) or SIGTERM mid-stage ends a real ``python -m sfm reconstruct`` with one
 line saying where it stopped and that rerunning resumes, leaves no process behind (pool
 workers, their fork server), and the rerun finishes the model; a run that ends normally has
 what it left in its process group ended, without waiting on zombies
@@ -59,7 +59,7 @@ def _alive(pids: list[int]) -> list[int]:
 def _stop_mid_stage(argv: list[str], log: Path, marker: str, signum: int) -> tuple[subprocess.CompletedProcess, list]:
     """Start ``graphsfm argv``, wait until ``log`` shows ``marker`` (the stage is running), send
     ``signum``; the finished process and the processes the run had started."""
-    proc = subprocess.Popen([sys.executable, "-m", "sfm.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "sfm", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=_env())
     deadline = time.monotonic() + 600
     while not (log.exists() and marker in log.read_text()):
@@ -100,7 +100,7 @@ def test_ctrl_c_during_matching_stops_everything_and_the_rerun_resumes(tmp_path)
     assert report["status"] == "stopped" and report["finished"]
     assert "stopped by Ctrl-C (SIGINT) during match" in (ws / "log.txt").read_text()
     assert (ws / "run.lock").read_text() == ""
-    rerun = subprocess.run([sys.executable, "-m", "sfm.cli", *argv], capture_output=True, text=True, env=_env(),
+    rerun = subprocess.run([sys.executable, "-m", "sfm", *argv], capture_output=True, text=True, env=_env(),
                            timeout=900)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert "16 images already have features" in rerun.stderr and "already verified (resumed)" in rerun.stderr

@@ -29,3 +29,14 @@ def test_the_base_side_imports_the_exported_commit(tmp_path):
                            env=dict(os.environ, PYTHONPATH=str(tmp_path / "base")), cwd=tmp_path,
                            capture_output=True, text=True, check=True).stdout.split()
     assert len(where) == 3 and all(Path(p).is_relative_to(tmp_path / "base") for p in where)
+
+
+def test_each_side_runs_the_script_entry_point_its_own_pyproject_names(tmp_path):
+    from bench_against_commit import export_tree, program
+
+    export_tree("HEAD", tmp_path / "base")
+    command = program("HEAD")
+    assert command[:2] == [sys.executable, "-c"] and "sfm.__main__ import main" in command[2]
+    done = subprocess.run([*command, "--version"], env=dict(os.environ, PYTHONPATH=str(tmp_path / "base")),
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.startswith("graphsfm ")

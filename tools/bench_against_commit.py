@@ -4,9 +4,10 @@
 
 The peer here is graphsfm itself at ``--base`` (a commit or tag): its ``sfm/``, ``graph/`` and
 ``backend/`` are exported by ``git archive`` into ``OUT/base``, and each side runs as a user
-runs it, ``python -m sfm.cli reconstruct --images SET/images --workspace W -q`` (supervisor,
-every stage, the Rerun recording), in a fresh workspace, with the same interpreter and
-packages.  Both sides run ``--repeat`` times on each set, alternating which goes first (a shared
+runs it, ``graphsfm reconstruct --images SET/images --workspace W -q`` (supervisor, every
+stage, the Rerun recording), in a fresh workspace, with the same interpreter and packages:
+``graphsfm`` is what that commit's ``pyproject.toml`` names as the script's entry point, called
+as pip's script calls it.  Both sides run ``--repeat`` times on each set, alternating which goes first (a shared
 machine drifts by tens of percent within minutes).  Each run's model is evaluated against the
 set's ground truth (``gt/cameras_gt_opencv.txt``) by this checkout's evaluator.  Prints every
 run and, per set, the medians of the wall time and of the map stage, and the ratio of the
@@ -25,6 +26,7 @@ import subprocess
 import sys
 import tarfile
 import time
+import tomllib
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -48,15 +50,25 @@ def export_tree(ref: str, dest: Path) -> str:
     return short
 
 
-def run_side(tree: Path, images: Path, workspace: Path, gt: Path) -> dict:
-    """One default reconstruct with the code of ``tree``: wall seconds, map stage, AUC@1."""
+def program(ref: str | None) -> list[str]:
+    """The ``graphsfm`` script of commit ``ref`` (None: this checkout) as a command: the
+    interpreter calling the entry point its ``pyproject.toml`` names, as pip's script does."""
+    text = (ROOT / "pyproject.toml").read_text() if ref is None else subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{ref}:pyproject.toml"], capture_output=True, text=True, check=True).stdout
+    module, _, func = tomllib.loads(text)["project"]["scripts"]["graphsfm"].partition(":")
+    return [sys.executable, "-c", f"import sys; from {module} import {func}; sys.exit({func}())"]
+
+
+def run_side(tree: Path, command: list[str], images: Path, workspace: Path, gt: Path) -> dict:
+    """One default reconstruct with the code of ``tree`` run by ``command`` (:func:`program`):
+    wall seconds, map stage, AUC@1."""
     if workspace.exists():
         shutil.rmtree(workspace)
     env = dict(os.environ, PYTHONPATH=str(tree))
     t0 = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "sfm.cli", "reconstruct", "--images", str(images), "--workspace",
-                           str(workspace), "-q"], env=env, capture_output=True, text=True,
-                          cwd=workspace.parent)  # not the checkout: "python -m" puts the working directory first on sys.path
+    done = subprocess.run([*command, "reconstruct", "--images", str(images), "--workspace", str(workspace), "-q"],
+                          env=env, capture_output=True, text=True,
+                          cwd=workspace.parent)  # not the checkout: "python -c" puts the working directory first on sys.path
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         raise SystemExit(f"reconstruct failed with {tree}: {done.stderr.strip().splitlines()[-1:]}")
@@ -77,7 +89,7 @@ def main() -> int:
     args = parser.parse_args()
     base = export_tree(args.base, args.out / "base")
     context = run_context()
-    sides = {"base": (args.out / "base", base), "head": (ROOT, context["code"])}
+    sides = {"base": (args.out / "base", program(args.base), base), "head": (ROOT, program(None), context["code"])}
     runs, summary = [], []
     for name in args.sets:
         images, gt = args.data / name / "images", args.data / name / "gt" / "cameras_gt_opencv.txt"
@@ -86,8 +98,8 @@ def main() -> int:
         measured = {"base": [], "head": []}
         for rep in range(args.repeat):
             for side in (("base", "head") if rep % 2 == 0 else ("head", "base")):
-                tree, code = sides[side]
-                r = run_side(tree, images, args.out / f"{name}_{side}", gt)
+                tree, command, code = sides[side]
+                r = run_side(tree, command, images, args.out / f"{name}_{side}", gt)
                 measured[side].append(r)
                 runs.append({"set": name, "run": rep + 1, "code": code, "wall_s": round(r["wall"], 1),
                              "map_s": round(r["map"], 1), "registered": r["registered"], "auc@1": round(r["auc1"], 4)})

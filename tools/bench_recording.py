@@ -42,7 +42,7 @@ STAGES = ("T_feat", "T_match", "T_GC", "T_SfM", "T_merge", "T_BA")
 def run_once(images: Path, workspace: Path, recording: bool, options: list[str]) -> dict:
     """``graphsfm reconstruct`` in a process of its own (imports included, as a user runs it)."""
     shutil.rmtree(workspace, ignore_errors=True)
-    command = [sys.executable, "-m", "sfm.cli", "reconstruct", "--images", str(images), "--workspace", str(workspace),
+    command = [sys.executable, "-m", "sfm", "reconstruct", "--images", str(images), "--workspace", str(workspace),
                "--recording" if recording else "--no-recording", *options]
     t0 = time.perf_counter()
     subprocess.run(command, check=True, capture_output=True, env={**os.environ, "PYTHONPATH": str(ROOT)})

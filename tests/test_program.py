@@ -1,0 +1,82 @@
+"""The program ``graphsfm`` (``sfm.__main__``): the supervised child starts the fork server of a
+pooled command before it imports the command line, the raw command line says which commands
+those are, and the supervisor's stop line needs no valid arguments."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from sfm.__main__ import runs_local_pool
+from sfm.cli import stopped
+from sfm.core.progress import STATUS_FILE_ENV
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["reconstruct", "--images", "photos", "--workspace", "w"], True),
+        (["-v", "map", "--workspace", "w"], True),
+        (["extract", "--workspace", "w", "--workers", "2"], True),
+        (["match", "--workspace", "w", "--workers=3", "--executor=local"], True),
+        (["map", "--workspace", "w", "--workers", "1"], False),
+        (["map", "--workspace", "w", "--workers=1"], False),
+        (["reconstruct", "--workspace", "w", "--executor", "dask"], False),
+        (["reconstruct", "--workspace", "w", "--executor=dask", "--workers", "4"], False),
+        (["cluster", "--workspace", "w"], False),
+        (["export", "model", "out.ply"], False),
+        (["reconstruct", "--help"], False),
+        (["--version"], False),
+        ([], False),
+    ],
+)
+def test_which_command_lines_start_the_fork_server_early(argv, expected):
+    assert runs_local_pool(argv) is (expected and (os.cpu_count() or 1) > 1)
+
+
+def test_an_explicit_worker_count_does_not_depend_on_the_cores():
+    assert runs_local_pool(["map", "--workspace", "w", "--workers", "2"])
+
+
+_ORDER = """
+import sys
+import sfm.execution.process_pool as process_pool
+process_pool.start_pool_server = lambda: print("server started; command line imported:", "sfm.cli" in sys.modules)
+from sfm.__main__ import main
+sys.argv = ["graphsfm", *sys.argv[1:]]
+code = main()
+print("exit", code, "; command line imported:", "sfm.cli" in sys.modules)
+"""
+
+
+@pytest.mark.parametrize("workers, server", [("2", True), ("1", False)])
+def test_the_child_starts_the_fork_server_before_importing_the_command_line(tmp_path, workers, server):
+    env = dict(os.environ, **{STATUS_FILE_ENV: str(tmp_path / "status")})  # the supervised child's side
+    done = subprocess.run([sys.executable, "-c", _ORDER, "map", "--workspace", str(tmp_path / "none"), "--workers",
+                           workers], capture_output=True, text=True, env=env, timeout=120)
+    lines = done.stdout.splitlines()
+    assert lines[-1] == "exit 2 ; command line imported: True"  # no such workspace: a bad argument
+    assert lines[:-1] == (["server started; command line imported: False"] if server else [])
+    assert "no database at" in done.stderr
+
+
+@pytest.mark.parametrize("module", ["sfm", "sfm.cli"])
+def test_both_module_entries_run_the_program(module):
+    done = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.startswith("graphsfm ")
+    done = subprocess.run([sys.executable, "-m", module, "mapp"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "unknown command 'mapp'" in done.stderr and "did you mean" in done.stderr.lower()
+
+
+def test_a_stop_before_the_arguments_were_refused_names_no_command(capsys):
+    stopped(["mapp", "--workspace", "w"], signal.SIGINT, "start-up")
+    assert capsys.readouterr().err == "graphsfm: stopped by Ctrl-C (SIGINT) during start-up\n"
+
+
+def test_a_stop_names_the_command_and_says_a_rerun_resumes(tmp_path, capsys):
+    stopped(["match", "--workspace", str(tmp_path / "not_made")], signal.SIGTERM, "match")
+    assert capsys.readouterr().err == "graphsfm match: stopped by SIGTERM during match; rerun the same command to resume\n"
