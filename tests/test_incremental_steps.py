@@ -86,14 +86,13 @@ class _FakeAdjuster:
 
     def __init__(self, decrease: float) -> None:
         self.decrease, self.tolerances, self.last_decrease = decrease, [], 0.0
+        # a new model: nothing recorded for the calibration to forget here
+        self.calibration = types.SimpleNamespace(forget=lambda: None)
 
     def global_(self, final: bool = False, tolerance: float = FINAL_TOLERANCE) -> None:
         assert final
         self.tolerances.append(tolerance)
         self.last_decrease = self.decrease
-
-    def forget_calibration_tests(self) -> None:  # a new model: nothing recorded to forget here
-        pass
 
 
 def test_second_final_ba_when_retriangulation_changed_enough_or_the_first_stopped_early():

@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import sfm.mapper.bundle_adjuster as bundle_adjuster
+import sfm.mapper.self_calibration as self_calibration
 from sfm.execution import spare_cores as spare
 from sfm.execution.local import LocalExecutor
 from sfm.io.colmap_model import read_model
@@ -70,13 +70,13 @@ def test_the_principal_points_halves_on_a_spare_core_give_the_same_model(tmp_pat
     moved = replace(scene, keypoints=[k + np.array([20.0, -12.0]) for k in scene.keypoints])  # an off-centre point
     pairs = simulate_matching(scene, opts)
     seen = []
-    real = bundle_adjuster.run_beside
+    real = self_calibration.run_beside
 
     def spy(func, item, **kwargs):
         seen.append(spare._SPARE.get())
         return real(func, item, **kwargs)
 
-    monkeypatch.setattr(bundle_adjuster, "run_beside", spy)
+    monkeypatch.setattr(self_calibration, "run_beside", spy)
     models = {}
     for workers in (1, 2):
         ws = tmp_path / f"w{workers}"

@@ -5,7 +5,7 @@ with one item), the other workers' cores are idle.  :class:`LocalExecutor` says 
 task runs (:func:`spare_cores`), and the task can start an independent piece of its work in a
 process of its own (:func:`run_beside`) while it computes another piece itself: the principal
 point's split-sample test has two bundle adjustments of half the images each
-(``sfm.mapper.bundle_adjuster``).  Anywhere else (a pool worker, a Dask worker, ``--workers 1``)
+(``sfm.mapper.self_calibration``).  Anywhere else (a pool worker, a Dask worker, ``--workers 1``)
 no core is spare and the piece runs in the caller, with the same result: the function is the
 same and the side process forks from the pipeline's fork server (``sfm.execution.process_pool``)
 with one thread, as pool workers do.  Should the side process fail, the caller computes the

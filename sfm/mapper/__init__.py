@@ -62,6 +62,8 @@ Modules, in reading order:
 - ``sfm.mapper.triangulation``: batched DLT, triangulation angles, point refinement.
 - ``sfm.mapper.bundle_adjuster``: ``BundleAdjuster``, which local, global and final BAs move
   what, and when they stop.
+- ``sfm.mapper.self_calibration``: ``SelfCalibration``, what each final BA refines of each
+  camera, from the two tests below and the principal point's split-sample step.
 - ``sfm.mapper.distortion``: the test that decides whether a final BA refines a camera's
   distortion.
 - ``sfm.mapper.principal_point``: the test that decides whether a final BA keeps a camera's

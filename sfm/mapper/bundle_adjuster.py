@@ -17,9 +17,9 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
   the other images that see those points held; its cost grows with the region, not the model.
 - Final BAs of a model: every image and every track, to a tighter tolerance; with
   ``intrinsics_refinement="auto"`` the distortion only of the cameras whose distortion the model
-  determines (``sfm.mapper.distortion``) and the principal point too of each camera whose shift
-  from its nominal value the model determines (``sfm.mapper.principal_point``), both tested
-  before the BA at the current state; above
+  determines and the principal point too of each camera whose shift from its nominal value the
+  model determines, both tested before the BA at the current state
+  (``sfm.mapper.self_calibration``); above
   ``ba_max_observations`` observations (by default as many as fit in half of the machine's
   memory) as the consensus of BAs over random track parts (``backend.partitioned_ba``), the
   points then re-estimated with the cameras held.
@@ -36,19 +36,14 @@ COLMAP stops its global BA on a gradient tolerance instead (Ceres).
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import numpy as np
 
 from backend.ba_problem import BAOptions, BAProblem
-from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2, refine_level
-from backend.camera_models import ds2_from_params, model_spec
 from backend.partitioned_ba import bundle_adjust_partitioned, observations_in_memory
 from backend.track_subset import select_tracks
-from sfm.mapper.distortion import DistortionTest, check_distortion, distortion_components, hold_components
-from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, check_principal_point, confirm_by_halves, split_halves
 from sfm.core import progress
-from sfm.execution.spare_cores import run_beside
+from sfm.mapper.self_calibration import SelfCalibration
 from sfm.mapper.state import ROW_CHUNK, MapperState
 from sfm.mapper.tracks import work_cuts
 from sfm.mapper.triangulation import refine_points
@@ -57,23 +52,6 @@ log = logging.getLogger(__name__)
 
 GROWING_TOLERANCE = 1e-3
 FINAL_TOLERANCE = 1e-4
-
-
-def half_calibration(task: tuple[BAProblem, BAOptions]):
-    """One half of the principal point's split-sample test (:meth:`BundleAdjuster._halves`):
-    the problem of one camera's half of the images, bundle-adjusted alone with ``options`` (it
-    stops as a growing model's global BA does, 25 iterations or a relative decrease of 1e-3),
-    then the calibration step from where it stopped, which completes the estimate to first
-    order: a half that converges slowly is one that determines the principal point poorly, and
-    its covariance says so.  ``(the camera's parameters, (Cal3DS2 step, (9, 9) covariance) or
-    None for a singular system, iterations, seconds)``; arrays only, so a spare core's process
-    can compute it (``sfm.execution.spare_cores``)."""
-    problem, options = task
-    result = bundle_adjust(problem, options)
-    adjusted = replace(problem, camera_params=result.camera_params, rotations=result.rotations,
-                       translations=result.translations, points=result.points)
-    [step] = calibration_step(adjusted, options)
-    return np.asarray(result.camera_params[0], float), step, result.iterations, result.time_s
 
 
 class BundleAdjuster:
@@ -88,13 +66,7 @@ class BundleAdjuster:
         self.opts = state.opts
         self.last_rms = float("nan")
         self.last_decrease = 0.0
-        # camera index -> the principal point and distortion tests of the last final BA that ran them
-        self.principal_point_tests: dict[int, PrincipalPointTest] = {}
-        self.distortion_tests: dict[int, DistortionTest] = {}
-        # cameras whose split-sample step held the principal point in this model: not tested again
-        self.held_by_halves: set[int] = set()
-        # cameras whose principal point is to be tested again although it passed before (retest_calibration)
-        self._retest: set[int] = set()
+        self.calibration = SelfCalibration(self)  # what the final BAs refine of each camera under "auto"
 
     # ------------------------------------------------------------------ the three kinds
     def local(self, i: int) -> None:
@@ -130,13 +102,13 @@ class BundleAdjuster:
             parts = self._num_parts(tracks)
             refine = self.opts.intrinsics_refinement
             if refine == "auto":
-                refine = self._final_levels(free, tracks, loss_scale)
+                refine = self.calibration.final_levels(free, tracks, loss_scale)
             self._adjust(free, tracks, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
                          on_iteration=_report_final_ba(len(free)))
             if parts > 1:
                 self.refine_points(tracks)
         else:
-            subset = self._subset(tracks)
+            subset = self.track_subset(tracks)
             self._adjust(free, subset, self._growing_level(), 25, GROWING_TOLERANCE, predictive=True,
                          loss_scale=loss_scale)
             if len(subset) < len(tracks):
@@ -211,161 +183,6 @@ class BundleAdjuster:
         level = self.opts.intrinsics_refinement
         return "focal_radial" if level == "auto" else level
 
-    def _final_levels(self, free: np.ndarray, tracks: np.ndarray, loss_scale: float) -> list[str]:
-        """What a final BA refines of each camera under "auto": the focal length always; the
-        distortion of the cameras that pass :func:`check_distortion` (its estimate with the
-        principal point held) and the principal point of those that pass
-        :func:`check_principal_point`, both tested at the current state (the Gauss-Newton step a
-        BA freeing them would take, with its covariance,
-        ``backend.bundle_adjustment.calibration_step``) against the camera's nominal values.  A
-        camera whose distortion is held goes back to its nominal distortion for the BA.
-
-        A camera whose principal point is already off its nominal value passed before (in this
-        model, or in the clusters merged into it) and keeps it free, unless
-        :meth:`retest_calibration` asked for the test again; one the split-sample step held at
-        an earlier final BA of this model stays held, untested again (the first two steps, cheap,
-        run at every final BA, as does the distortion test).  The tests run on the
-        growing model's track subset (:meth:`_subset`: each image's best track per grid cell, so
-        every image and every part of it counts): its covariance is larger than the full
-        problem's, a conservative screen, at the cost of a fraction of the final BA.  The
-        principal point's split-sample step (:meth:`_halves`), two BAs of half the images each,
-        runs only for a camera that passed its first two steps."""
-        s = self.state
-        levels = ["focal_radial"] * len(s.priors)
-        pp_free: dict[int, bool] = {}  # the cameras the tests decide, and whether the principal point is free
-        untested = []  # cameras whose principal point is tested now
-        for c in np.unique(s.cam_index[free]).tolist():
-            prior = s.priors[c]
-            if prior.fixed:
-                continue
-            nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
-            pp_free[c] = bool(np.any(nominal[[3, 4]] != current[[3, 4]]))
-            if (c in self._retest or not pp_free[c]) and c not in self.held_by_halves:
-                untested.append(c)
-            levels[c] = refine_level(True, pp_free[c])
-        if not untested and not any(distortion_components(s.priors[c].model) for c in pp_free):
-            return levels
-        problem, _, _, cams = self._problem(free, self._subset(tracks))
-        if problem is None:
-            return levels
-        trial = tuple("all" if c in untested else "focal_radial" if c in pp_free else "none" for c in cams)
-        held: dict[int, np.ndarray] = {}  # camera key -> its parameters, held ones back at their nominal values
-
-        def hold(c: int, components: list[int]) -> None:  # camera c's components back at their nominal values
-            nominal_params = np.asarray(s.priors[c].params, float)
-            held.setdefault(s.cam_keys[c], s.params[c].copy())[components] = nominal_params[components]
-
-        # None where the system is singular (images joined to the rest by too few tracks): the
-        # tests then keep COLMAP's choice (principal point held, distortion refined).
-        steps = calibration_step(problem, BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=trial))
-        for k, c in enumerate(cams.tolist()):
-            if c not in pp_free:
-                continue
-            prior = s.priors[c]
-            nominal, current = ds2_from_params(prior.model, prior.params), ds2_from_params(prior.model, s.params[c])
-            step, cov = steps[k] if steps[k] is not None else (None, None)
-            num_images = int(np.sum(s.registered & (s.cam_index == c)))
-            if c in untested:
-                estimate = current + (step if step is not None else 0.0)
-                test = check_principal_point(nominal, estimate, cov, free_ds2(prior.model, "all"))
-                if test.accepted:
-                    test = confirm_by_halves(test, nominal, self._halves(c, free, tracks, loss_scale))
-                    if not test.accepted:
-                        self.held_by_halves.add(c)
-                if pp_free[c]:  # tested again (retest_calibration)
-                    if not np.isfinite(test.chi2):  # nothing to test it with yet: the earlier decision stands
-                        test = replace(test, accepted=True, reason="refined before, not testable now")
-                    else:
-                        self._retest.discard(c)
-                    if not test.accepted:  # held now: back to the nominal value
-                        hold(c, list(model_spec(prior.model).pp_idx))
-                self.principal_point_tests[c] = test
-                log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, test.summary())
-                pp_free[c] = test.accepted
-                if step is not None:  # the distortion's estimate with the principal point held
-                    try:
-                        step, cov = hold_components(step, cov, free_ds2(prior.model, "all"), [3, 4])
-                    except np.linalg.LinAlgError:
-                        step, cov = None, None
-            distortion = check_distortion(prior.model, nominal, current + (step if step is not None else 0.0), cov)
-            if distortion_components(prior.model):
-                self.distortion_tests[c] = distortion
-                log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
-            if not distortion.accepted and distortion_components(prior.model):
-                hold(c, list(model_spec(prior.model).extra_idx))
-            levels[c] = refine_level(distortion.accepted, pp_free[c])
-        if held:
-            s.set_camera_params(held)  # one update of the normalised coordinates
-        return levels
-
-    def _halves(self, camera: int, free: np.ndarray, tracks: np.ndarray, loss_scale: float):
-        """The split-sample step of the principal point test (``principal_point.confirm_by_halves``):
-        camera ``camera``'s images among ``free``, split in two by :func:`split_halves`; each half
-        bundle-adjusted alone on the observations of ``tracks`` in its images (every pose and
-        point free, the camera's intrinsics all refined, the gauge held by the BA's priors), then
-        its Cal3DS2 estimate and covariance (:func:`half_calibration`).  The two are independent:
-        the first runs on a spare core when this task has one (``sfm.execution.spare_cores``: a
-        map stage of one cluster) and the two fit in one BA's memory budget together, with the
-        same result as here.  Every track, unless the two
-        halves together would exceed twice ``ba_max_observations``: then the track subset of
-        :meth:`_subset`.  None when a half has fewer than ``MIN_HALF_IMAGES`` images or its
-        system is singular."""
-        s = self.state
-        budget = self._observation_budget()
-        if budget and len(s.inlier_rows(tracks)[0]) > 2 * budget:
-            tracks = self._subset(tracks)  # each half within the BA memory budget
-        images = free[s.cam_index[free] == camera]
-        centers = -np.einsum("nji,nj->ni", s.R[images], s.t[images])
-        low = split_halves(centers)
-        halves = (images[low], images[~low])
-        if min(len(half) for half in halves) < MIN_HALF_IMAGES:
-            return None
-        problems = [self._problem(half, tracks, alone=True)[0] for half in halves]
-        if any(problem is None for problem in problems):
-            return None
-        options = BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
-                            max_iterations=25, relative_tolerance=GROWING_TOLERANCE)
-        together = sum(len(problem.obs_image) for problem in problems)  # both in memory at once
-        first = run_beside(half_calibration, (problems[0], options), fits=not budget or together <= budget)
-        try:
-            second = half_calibration((problems[1], options))
-        finally:
-            first_solved = first()  # the side process is waited for (and ended) whatever happened here
-        estimates = []
-        for half, problem, (params, step, iterations, seconds) in zip(halves, problems, (first_solved, second)):
-            log.debug("%s: camera %d, %d images alone: %d observations, %d iterations, %.2f s", s.payload.label,
-                      camera, len(half), len(problem.obs_image), iterations, seconds)
-            if step is None:
-                return None
-            estimates.append((ds2_from_params(s.priors[camera].model, params) + step[0], step[1]))
-        return tuple(estimates)
-
-    def forget_calibration_tests(self) -> None:
-        """Start a new model: its first final BA tests every camera's principal point and
-        distortion again."""
-        self.principal_point_tests.clear()
-        self.distortion_tests.clear()
-        self.held_by_halves.clear()
-        self._retest.clear()
-
-    def retest_calibration(self) -> None:
-        """The next final BAs decide every camera's self-calibration again, from the current
-        values: also a principal point that passed the test before (in a model that held part
-        of the data only), which is set back to its nominal value if it fails now.  Until a
-        final BA's system gives a covariance to test it with (a merged model's parts may meet
-        in too few tracks at first), the earlier decision stands and it stays refined."""
-        self.forget_calibration_tests()
-        self._retest = set(range(len(self.state.priors)))
-
-    def calibration_report(self) -> list[str]:
-        """What the model's last final BAs decided of each camera they tested, a line per camera
-        (its database id, then each test's summary): for the recording."""
-        s = self.state
-        cameras = sorted(set(self.principal_point_tests) | set(self.distortion_tests))
-        return [f"camera {s.cam_keys[c]} ({s.priors[c].model}): " + "; ".join(
-                    test.summary() for test in (self.distortion_tests.get(c), self.principal_point_tests.get(c)) if test)
-                for c in cameras]
-
     def _global_loss_scale(self) -> float:
         """``opts.global_loss_scale``; unresolved (``MapperOptions.for_model``), the final
         model's ``max_reproj_error``."""
@@ -374,7 +191,7 @@ class BundleAdjuster:
     def _num_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most
         ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
-        budget = self._observation_budget()
+        budget = self.observation_budget()
         num_rows = len(self.state.inlier_rows(tracks)[0])
         parts = -(-num_rows // budget) if budget > 0 else 1
         if parts > 1:
@@ -383,13 +200,13 @@ class BundleAdjuster:
                      self.state.payload.label, num_rows, parts, budget)
         return parts
 
-    def _observation_budget(self) -> int:
+    def observation_budget(self) -> int:
         """``ba_max_observations``; None: as many as fit in this machine's memory
         (``backend.partitioned_ba.observations_in_memory``); 0: no limit."""
         budget = self.opts.ba_max_observations
         return observations_in_memory() if budget is None else budget
 
-    def _subset(self, tracks: np.ndarray) -> np.ndarray:
+    def track_subset(self, tracks: np.ndarray) -> np.ndarray:
         """The tracks a global BA optimises while the model grows: each image's best track in
         each grid cell (``select_tracks``' first level), as TheiaSfM does: it only has to keep
         the growing model from drifting, and the final BAs refine everything."""
@@ -402,7 +219,7 @@ class BundleAdjuster:
         keep = select_tracks(s.obs_image[rows], owner, s.obs_px[rows], sizes, np.minimum(err, 1e6), len(tracks), 0)
         return tracks[keep]
 
-    def _problem(self, free: np.ndarray, tracks: np.ndarray, alone: bool = False):
+    def problem(self, free: np.ndarray, tracks: np.ndarray, alone: bool = False):
         """The BA problem of ``tracks`` with the images ``free`` free and the others that see
         them held: ``(problem, image order, number of free images, the state's cameras of its
         groups)``; ``(None, ...)`` without observations.  ``alone``: the images ``free`` by
@@ -445,7 +262,7 @@ class BundleAdjuster:
         ``refine``: one level for every camera, or one per camera of the state;
         ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
         s = self.state
-        problem, order, n_free, cams = self._problem(free, tracks)
+        problem, order, n_free, cams = self.problem(free, tracks)
         if problem is None:
             return
         levels = [refine] * len(s.priors) if isinstance(refine, str) else list(refine)

@@ -109,7 +109,7 @@ class Growth:
     def close(self, state: MapperState, calibration: list[str] = ()) -> None:
         """The current model is finished: note why each image outside it is left out, and
         ``calibration``, what its final BAs refined of each camera
-        (``BundleAdjuster.calibration_report``)."""
+        (``SelfCalibration.report``)."""
         if not self.models or self.models[-1].size:
             return
         model = self.models[-1]

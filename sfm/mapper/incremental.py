@@ -83,7 +83,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
         closed += n
         if growth is not None:
             growth.record(state, adjuster.last_rms, [])  # the refined model
-            growth.close(state, adjuster.calibration_report())
+            growth.close(state, adjuster.calibration.report())
         state.close_model()
         if n >= min_size:
             models.append(model)
@@ -104,7 +104,7 @@ def final_refinement(state: MapperState, adjuster: BundleAdjuster) -> None:
     ``FINAL_TOLERANCE``, starts from there.  When nothing changed enough, the second BA runs
     only if the first stopped short of ``FINAL_TOLERANCE`` (its last decrease was larger), so
     the last BA of every model reaches it."""
-    adjuster.forget_calibration_tests()  # another model than the last one refined
+    adjuster.calibration.forget()  # another model than the last one refined
     adjuster.global_(final=True, tolerance=GROWING_TOLERANCE)
     first_decrease = adjuster.last_decrease
     before = int(state.obs_inlier.sum())

@@ -105,7 +105,7 @@ def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str,
         if pooled_params is not None:
             state.set_camera_params(pooled_params)
             state.retriangulate()
-        adjuster.retest_calibration()
+        adjuster.calibration.retest()
         alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
         return to_reconstruction(state)
     region = np.zeros(0, np.int64)

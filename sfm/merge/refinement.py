@@ -46,7 +46,7 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     the merged clusters' own global BAs do (``MapperOptions.global_loss_scale``): the merged
     tracks were filtered against poses moved by similarity transforms, not by a BA over them.
     ``calibration``: a list that receives what the BAs refined of each camera, a line per
-    camera (``BundleAdjuster.calibration_report``)."""
+    camera (``SelfCalibration.report``)."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # nothing would register the dropped images again
     state.release_pairs()
@@ -60,7 +60,7 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     state.retriangulate()
     alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
     if calibration is not None:
-        calibration.extend(adjuster.calibration_report())
+        calibration.extend(adjuster.calibration.report())
     return to_reconstruction(state)
 
 

@@ -80,7 +80,7 @@ def log_growth(recorder: Recorder, growth) -> int:
 
 
 def calibration_text(lines: list[str]) -> str:
-    """Markdown of a model's self-calibration decisions (``BundleAdjuster.calibration_report``)."""
+    """Markdown of a model's self-calibration decisions (``sfm.mapper.self_calibration.SelfCalibration.report``)."""
     return ("What the final bundle adjustments refined of each camera (`sfm.mapper.distortion`, "
             "`sfm.mapper.principal_point`):\n\n" + "\n".join(f"- {line}" for line in lines))
 

@@ -203,7 +203,7 @@ the layer it merges in.
 
 def refine_text(models: list[dict], before_points: int, calibration: list[str] = ()) -> str:
     """Stage 6: re-triangulation and the final bundle adjustment of the merged model;
-    ``calibration``: what it refined of each camera (``BundleAdjuster.calibration_report``)."""
+    ``calibration``: what it refined of each camera (``sfm.mapper.self_calibration.SelfCalibration.report``)."""
     first = models[0] if models else {}
     cameras = "".join(f"\n- {line}" for line in calibration)
     cameras = (f"\n\nOf each camera the bundle adjustments refined the focal length, and the distortion and "
