@@ -44,6 +44,7 @@ from sfm.core.options import OptionError, allowed, base_type, option_fields
 from sfm.core.progress import STATUS_FILE_ENV
 from sfm.errors import GraphsfmError, InputError
 from sfm.evaluation.options import AlignOptions, EvaluateOptions
+from sfm.execution.logs import DETAILS
 from sfm.execution.options import ExecutionOptions, make_executor
 from sfm.features.options import ExtractOptions
 from sfm.io.database import damaged_database
@@ -518,7 +519,7 @@ def run(args: argparse.Namespace) -> int:
     except Exception as exc:  # noqa: BLE001 - the one place that turns a failure into one line
         message, code = _one_line(exc, workspace)
         if code == 1:
-            log.debug("unexpected error\n%s", traceback.format_exc())
+            logging.getLogger(DETAILS).info("unexpected error\n%s", traceback.format_exc())
         else:
             log.debug("error: %s", message)
         print(f"graphsfm {args.command}: error: {message}", file=sys.stderr)

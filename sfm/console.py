@@ -7,7 +7,8 @@
   it already; written through tqdm so that it does not break a progress bar.
 - ``WORK/log.txt``: INFO (``-v``: DEBUG), with time, level, process id, logger and task, so a
   line from a worker process says which cluster it worked for.  Python warnings (NumPy's, say)
-  are logged here, not printed (``sfm.execution.logs.quiet_warnings``).
+  are logged here, not printed (``sfm.execution.logs.quiet_warnings``), and so is the
+  traceback of a failure the terminal shows as one line (``sfm.execution.logs.DETAILS``).
 
 Worker processes' records reach these handlers through ``sfm.execution.logs``.  Progress bars
 (``sfm.core.progress``) are drawn when stderr is a terminal and ``-q`` is not given; otherwise
@@ -24,7 +25,7 @@ from tqdm import tqdm
 
 from sfm.core import progress
 from sfm.errors import InputError
-from sfm.execution.logs import quiet_warnings
+from sfm.execution.logs import DETAILS, quiet_warnings
 from sfm.io.workspace import LOG
 
 LEVELS = {"quiet": logging.WARNING, "normal": logging.INFO, "debug": logging.DEBUG}
@@ -72,7 +73,8 @@ class _Console(logging.StreamHandler):
 
 
 def _not_warnings(record: logging.LogRecord) -> bool:
-    return record.name != "py.warnings"
+    """Python warnings and failures' details are for the log file, not the terminal."""
+    return record.name not in ("py.warnings", DETAILS)
 
 
 def teardown_logging() -> None:

@@ -198,3 +198,28 @@ def test_a_workspace_in_use_is_refused_at_once_and_a_dead_owners_lock_is_taken_o
         assert other.returncode == 7
     assert (ws / "run.lock").read_text() == ""
     assert issubclass(WorkspaceBusyError, sfm.errors.InputError)
+
+
+def test_a_cluster_that_fails_is_the_error_and_its_traceback_is_in_the_log(tmp_path, capsys, monkeypatch):
+    """A map whose only cluster raised says so (exit 1, the exception in the one line), not
+    that the photos gave no image pair; the traceback is in WORK/log.txt at the default
+    verbosity and not on the terminal."""
+    import sfm.mapper.incremental as incremental
+    from sfm.stages.synth import run_synth
+    from sfm.synthetic.options import SynthOptions
+
+    run_synth(tmp_path, SynthOptions(num_images=8, observations_per_image=200, seed=4))
+
+    def broken(state, adjuster):
+        raise TypeError("a bug in the final BA")
+
+    monkeypatch.setattr(incremental, "final_refinement", broken)
+    capsys.readouterr()
+    assert cli.main(["map", "--workspace", str(tmp_path), "--workers", "1", "--no-recording"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == (f"graphsfm map: error: no model could be made: 1 cluster(s) failed and are left "
+                                    f"out: C0; cluster C0: TypeError: a bug in the final BA; details in "
+                                    f"{tmp_path / 'log.txt'}")
+    assert "Traceback" not in err
+    log = (tmp_path / "log.txt").read_text()
+    assert "Traceback" in log and 'raise TypeError("a bug in the final BA")' in log

@@ -37,7 +37,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
-from sfm.execution.logs import forwarded_logs, init_worker
+from sfm.execution.logs import DETAILS, forwarded_logs, init_worker
 from sfm.execution.process_pool import pool_context, single_threaded
 from sfm.execution.spare_cores import spare_cores
 
@@ -78,7 +78,7 @@ def run_task(func: Callable[[Any], Any], item: Any, catch: bool) -> tuple[Any, s
     try:
         return func(item), None, worker_name()
     except Exception as exc:  # noqa: BLE001 - reported as this task's failure
-        log.debug("task failed\n%s", traceback.format_exc())
+        logging.getLogger(DETAILS).info("task failed\n%s", traceback.format_exc())
         return None, f"{type(exc).__name__}: {exc}", worker_name()
 
 

@@ -19,7 +19,9 @@ arrive after the task ended.
 
 Each record carries the task it came from (``record.task``, ``sfm.core.progress.task``), and
 warnings of NumPy, OpenCV's Python layer and the rest are logged (``py.warnings``: in the log
-file, not on the terminal) instead of printed.  Workers ignore SIGINT: Ctrl-C reaches the whole process
+file, not on the terminal) instead of printed.  So are the details of a failure that the
+terminal reports as one line, its traceback (the logger :data:`DETAILS`, at INFO: in the log
+file at every verbosity).  Workers ignore SIGINT: Ctrl-C reaches the whole process
 group, and it is the parent that stops them (``sfm.execution.processes``).
 """
 
@@ -34,6 +36,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from sfm.core import progress
+
+# The logger of what goes to WORK/log.txt only: a failure's traceback behind its one-line report.
+DETAILS = "graphsfm.details"
 
 _QUEUE_KEEP = ("name", "levelno", "levelname", "msg", "created", "msecs", "relativeCreated", "process",
                "processName", "thread", "threadName", "module", "filename", "funcName", "lineno", "pathname",

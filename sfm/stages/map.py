@@ -20,12 +20,12 @@ from pathlib import Path
 
 from sfm.core import progress
 from sfm.core.model import Reconstruction
-from sfm.errors import InputError, NoModelError
+from sfm.errors import GraphsfmError, InputError, NoModelError
 from sfm.execution.local import LocalExecutor, TaskResult
 from sfm.io.colmap_model import read_model, write_model
 from sfm.io.ledger import Ledger, database_fingerprint, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, update_report
-from sfm.io.workspace import CLUSTERS, DATABASE, image_dir_of, read_georegistration, read_json, write_georegistration
+from sfm.io.workspace import CLUSTERS, DATABASE, LOG, image_dir_of, read_georegistration, read_json, write_georegistration
 from sfm.mapper.growth import Growth
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
@@ -160,6 +160,10 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     fields["warnings"] = clusters_warnings + fields["warnings"]  # the cluster stage logged its own
     update_report(workspace, fields, {"map": elapsed})
     ledger.finish("map", fingerprint(input_fp, opts, failed))
+    if not flat and failed:  # the failure, not the photos, is why there is no model
+        first = next(c for c in per_cluster if c["error"])
+        raise GraphsfmError(f"no model could be made: {failed_clusters_warning(failed)}; cluster {first['cluster']}: "
+                            f"{first['error']}; details in {workspace / LOG}")
     if not flat:
         raise NoModelError("no model could be made: no image pair could be reconstructed (too few inliers or too small baselines)")
     log.info("map: %d clusters, %d local models, %.1f s", len(payloads), len(flat), elapsed)
