@@ -164,7 +164,7 @@ def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, capl
         ws = tmp_path / mode
         ws.mkdir()
         write_database(moved, pairs, ws / "database.db", camera_model="SIMPLE_RADIAL")
-        with caplog.at_level(logging.INFO, logger="sfm.mapper.bundle_adjuster"):
+        with caplog.at_level(logging.INFO, logger="sfm.mapper.self_calibration"):
             run_map(ws, MapperOptions(intrinsics_refinement=mode), executor=LocalExecutor(1))
         models[mode] = read_model(ws / "sparse" / "0")
     tests = [r.getMessage() for r in caplog.records if "principal point shift" in r.getMessage()]
