@@ -36,8 +36,9 @@ from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, chec
 
 log = logging.getLogger(__name__)
 
-# Each half of the split-sample step stops as a growing model's global BA does (25 iterations or
-# a relative decrease of 1e-3): the calibration step from where it stopped completes it.
+# Each half of the split-sample step stops as a growing model's global BA does (25 iterations, a
+# relative decrease of 1e-3, or the rest of the decrease predicted below it): the calibration
+# step from where it stopped completes it.
 HALF_MAX_ITERATIONS = 25
 HALF_TOLERANCE = 1e-3
 
@@ -174,7 +175,8 @@ class SelfCalibration:
         if any(problem is None for problem in problems):
             return None
         options = BAOptions(loss=s.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
-                            max_iterations=HALF_MAX_ITERATIONS, relative_tolerance=HALF_TOLERANCE)
+                            max_iterations=HALF_MAX_ITERATIONS, relative_tolerance=HALF_TOLERANCE,
+                            predictive_stop=True)
         together = sum(len(problem.obs_image) for problem in problems)  # both in memory at once
         first = run_beside(half_calibration, (problems[0], options), fits=not budget or together <= budget)
         try:
