@@ -77,3 +77,13 @@ def test_a_stop_before_the_arguments_were_refused_names_no_command(capsys):
 def test_a_stop_names_the_command_and_says_a_rerun_resumes(tmp_path, capsys):
     stopped(["match", "--workspace", str(tmp_path / "not_made")], signal.SIGTERM, "match")
     assert capsys.readouterr().err == "graphsfm match: stopped by SIGTERM during match; rerun the same command to resume\n"
+
+
+def test_the_child_freezes_the_heap_once_the_command_has_returned(tmp_path):
+    """The shutdown's collections skip what is left of the command (``sfm.__main__``, 3.)."""
+    code = ("import gc, sys; from sfm.__main__ import main; sys.argv = ['graphsfm', '--version']; "
+            "print(gc.get_freeze_count() == 0); code = main(); print(code, gc.get_freeze_count() > 0)")
+    env = dict(os.environ, **{STATUS_FILE_ENV: str(tmp_path / "status")})
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    before, version, after = done.stdout.splitlines()
+    assert before == "True" and version.startswith("graphsfm ") and after == "0 True"
