@@ -41,7 +41,6 @@ from sfm.clustering.options import ClusterOptions
 from sfm.console import setup_logging, teardown_logging
 from sfm.core import progress
 from sfm.core.options import OptionError, allowed, base_type, option_fields
-from sfm.core.progress import STATUS_FILE_ENV
 from sfm.errors import GraphsfmError, InputError
 from sfm.evaluation.options import AlignOptions, EvaluateOptions
 from sfm.execution.logs import DETAILS

@@ -4,7 +4,6 @@ written and read in COLMAP's files; OPENCV recovers a lens SIMPLE_RADIAL cannot 
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -9,7 +9,6 @@ import re
 from pathlib import Path
 
 import networkx as nx
-import pytest
 
 import sfm
 

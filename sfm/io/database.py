@@ -474,10 +474,6 @@ class Database:
         """Total number of keypoints over all images."""
         return self._scalar("SELECT SUM(rows) FROM keypoints")
 
-    def keypoint_counts(self) -> dict[int, int]:
-        """Keypoints per image id (images without a keypoints row are absent)."""
-        return {int(i): int(n) for i, n in self._conn.execute("SELECT image_id, rows FROM keypoints")}
-
     def num_two_view_geometries(self) -> int:
         """Pairs that went through verification (a row each, verified or not)."""
         return self._scalar("SELECT COUNT(*) FROM two_view_geometries")

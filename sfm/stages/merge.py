@@ -104,8 +104,8 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
                                                 [registered_names(Path(m["path"])) for m in result.models]),
                       {"merge": 0.0, "final_ba": 0.0})
         if recorder.enabled:  # the recording of this run still shows the merged model
-            recorder.tour("merge", f"## 5. Merge\n\nThe merged models in `sparse/` are current (same options, same "
-                                   f"local models): the merge was not run again; `merge.json` holds its plan.")
+            recorder.tour("merge", "## 5. Merge\n\nThe merged models in `sparse/` are current (same options, same "
+                                   "local models): the merge was not run again; `merge.json` holds its plan.")
             recorder.image_dir = recorder.image_dir or image_dir_of(workspace)
             finals = [read_model(m["path"]) for m in result.models]
             with Database(workspace / DATABASE, readonly=True) as db:

@@ -23,7 +23,6 @@ Pixels follow OpenCV's convention internally (see ``sfm.core.model``); the datab
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
