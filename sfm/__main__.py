@@ -68,8 +68,11 @@ def main() -> int:
         from sfm.execution.processes import supervise
 
         # The resource tracker of a run that was stopped unlinks its semaphores without a warning.
-        child = ["-W", "ignore:resource_tracker:UserWarning", "-m", "sfm", *argv]
-        return supervise(child, lambda signum, where: _stopped(argv, signum, where))
+        child = ["-W", "ignore:resource_tracker:UserWarning", "-c", _child_program(), *argv]
+        # No Python process of the run puts the working directory first on its path (Python
+        # 3.11+; _child_program): the fork server imports the pipeline before any code of ours
+        # could say where from.
+        return supervise(child, lambda signum, where: _stopped(argv, signum, where), env={"PYTHONSAFEPATH": "1"})
     if runs_local_pool(argv):
         from sfm.execution.process_pool import start_pool_server
 
@@ -80,6 +83,17 @@ def main() -> int:
     gc.collect()  # what the command left: its finalizers run now
     gc.freeze()  # the shutdown's collections skip the rest (module docstring, 3.)
     return code
+
+
+def _child_program() -> str:
+    """The child's Python program: this module's :func:`main`, imported from the folder this
+    very ``sfm`` package was imported from.  ``python -m`` and ``-c`` put the working directory
+    first on the path, where a user's own ``sfm.py``, ``sfm/``, ``graph/`` or ``backend/``
+    would otherwise be imported instead of graphsfm's (``PYTHONSAFEPATH``, which :func:`main`
+    sets for the child and every Python process it starts, keeps the working directory off
+    their paths from Python 3.11 on)."""
+    root = str(Path(__file__).resolve().parents[1])
+    return f"import sys; sys.path.insert(0, {root!r}); from sfm.__main__ import main; sys.exit(main())"
 
 
 def _stopped(argv: list[str], signum: int, where: str) -> None:

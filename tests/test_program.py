@@ -1,6 +1,7 @@
 """The program ``graphsfm`` (``sfm.__main__``): the supervised child starts the fork server of a
 pooled command before it imports the command line, the raw command line says which commands
-those are, and the supervisor's stop line needs no valid arguments."""
+those are, the supervisor's stop line needs no valid arguments, and every process of a run
+imports graphsfm's packages whatever the working directory holds."""
 
 from __future__ import annotations
 
@@ -8,8 +9,11 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+
+import sfm
 
 from sfm.__main__ import runs_local_pool
 from sfm.cli import stopped
@@ -87,3 +91,27 @@ def test_the_child_freezes_the_heap_once_the_command_has_returned(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     before, version, after = done.stdout.splitlines()
     assert before == "True" and version.startswith("graphsfm ") and after == "0 True"
+
+
+def test_a_users_own_sfm_and_backend_in_the_working_directory_are_not_imported(tmp_path):
+    """graphsfm run where the user keeps an ``sfm`` or ``backend`` package of their own: the
+    child, the fork server and the pool's workers all import graphsfm's."""
+    import cv2
+    import numpy as np
+
+    for name in ("sfm", "backend"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "__init__.py").write_text(f"raise SystemExit('the working directory\\'s {name}')\n")
+    images = tmp_path / "photos"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        cv2.imwrite(str(images / f"{i}.png"), cv2.GaussianBlur(rng.integers(0, 255, (240, 320), np.uint8), (5, 5), 0))
+    root = str(Path(sfm.__file__).resolve().parents[1])
+    program = f"import sys; sys.path.insert(0, {root!r}); from sfm.__main__ import main; sys.exit(main())"
+    done = subprocess.run([sys.executable, "-c", program, "extract", "--images", "photos", "--workspace", "w",
+                           "--workers", "2", "--no-recording"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "working directory" not in done.stderr + done.stdout
+    assert "2 images extracted" in (tmp_path / "w" / "log.txt").read_text()

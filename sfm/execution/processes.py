@@ -152,14 +152,14 @@ def _child_setup(parent: int) -> None:
         os._exit(1)
 
 
-def supervise(argv: list[str], on_stop: Callable[[int, str], None]) -> int:
-    """Run ``python argv...`` in a child process in its own process group and wait for it; on
-    SIGINT or SIGTERM end it and everything it started, call ``on_stop(signum, where)`` (where:
-    the stage the child last reported) and return 128 + signum.  Otherwise the child's exit
-    code (128 + signal when a signal killed it)."""
+def supervise(argv: list[str], on_stop: Callable[[int, str], None], env: dict[str, str] | None = None) -> int:
+    """Run ``python argv...`` in a child process in its own process group, with this process's
+    environment plus ``env``, and wait for it; on SIGINT or SIGTERM end it and everything it
+    started, call ``on_stop(signum, where)`` (where: the stage the child last reported) and
+    return 128 + signum.  Otherwise the child's exit code (128 + signal when a signal killed it)."""
     with tempfile.NamedTemporaryFile("w+", prefix="graphsfm-status-", delete=False) as status:
         status_path = status.name
-    env = dict(os.environ, **{STATUS_FILE_ENV: status_path})
+    env = dict(os.environ, **(env or {}), **{STATUS_FILE_ENV: status_path})
     stop = {"signum": 0}
 
     def on_signal(signum, frame):
