@@ -50,12 +50,11 @@ def runs_local_pool(argv: list[str]) -> bool:
         if flag in ("--workers", "--executor"):
             value[flag] = attached or (argv[i + 1] if i + 1 < len(argv) else "")
     workers = value.get("--workers", "0")
-    return value.get("--executor", "local") == "local" and workers != "1" and (workers != "0" or _cores() > 1)
+    if value.get("--executor", "local") != "local" or workers == "1":
+        return False
+    from sfm.execution.process_pool import usable_cores
 
-
-def _cores() -> int:
-    """The cores this process may run on (``LocalExecutor``'s count for ``--workers 0``)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return workers != "0" or usable_cores() > 1
 
 
 def main() -> int:

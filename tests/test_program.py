@@ -18,6 +18,7 @@ import sfm
 from sfm.__main__ import runs_local_pool
 from sfm.cli import stopped
 from sfm.core.progress import STATUS_FILE_ENV
+from sfm.execution.process_pool import usable_cores
 
 
 @pytest.mark.parametrize(
@@ -40,7 +41,7 @@ from sfm.core.progress import STATUS_FILE_ENV
 )
 def test_which_command_lines_start_the_fork_server_early(argv, expected):
     """"cores": the default worker count, one per core: early on a machine of several."""
-    assert runs_local_pool(argv) is {"yes": True, "no": False, "cores": len(os.sched_getaffinity(0)) > 1}[expected]
+    assert runs_local_pool(argv) is {"yes": True, "no": False, "cores": usable_cores() > 1}[expected]
 
 
 _ORDER = """

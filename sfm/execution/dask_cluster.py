@@ -16,7 +16,6 @@ caller asked.
 from __future__ import annotations
 
 import logging
-import os
 import uuid
 import warnings
 from collections import deque
@@ -25,7 +24,7 @@ from typing import Any
 
 from sfm.errors import InputError
 from sfm.execution.local import TaskResult, run_task
-from sfm.execution.process_pool import single_threaded
+from sfm.execution.process_pool import single_threaded, usable_cores
 from sfm.execution.logs import collect_records, replay
 
 log = logging.getLogger(__name__)
@@ -56,7 +55,7 @@ class DaskExecutor:
         if workers < 0:
             raise ValueError(f"workers must be >= 0 (0: one per core), got {workers}")
         self.scheduler = scheduler
-        self.workers = workers or len(os.sched_getaffinity(0))
+        self.workers = workers or usable_cores()
         self.address: str | None = scheduler
         self._client = None
         self._cluster = None

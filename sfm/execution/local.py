@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sfm.execution.logs import DETAILS, forwarded_logs, init_worker
-from sfm.execution.process_pool import pool_context, single_threaded
+from sfm.execution.process_pool import pool_context, single_threaded, usable_cores
 from sfm.execution.spare_cores import spare_cores
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,7 @@ class LocalExecutor:
     def __init__(self, workers: int = 0) -> None:
         if workers < 0:
             raise ValueError(f"workers must be >= 0 (0: one per core), got {workers}")
-        self.workers = workers or len(os.sched_getaffinity(0))
+        self.workers = workers or usable_cores()
 
     def runs_in_process(self, num_items: int, max_workers: int = 0) -> bool:
         """Whether :meth:`map` of ``num_items`` items would run them in this process."""

@@ -21,6 +21,7 @@ script importing ``sfm.api`` would import the rest again before their first task
 from __future__ import annotations
 
 import multiprocessing
+import os
 from multiprocessing.context import BaseContext
 
 # "__main__" is multiprocessing's own default preload: the caller's functions can be pickled.
@@ -43,6 +44,12 @@ def start_pool_server() -> None:
         from multiprocessing import forkserver
 
         forkserver.ensure_running()
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, which a container or ``taskset``
+    makes fewer than the machine's): what ``--workers 0``, one worker per core, means."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def single_threaded() -> None:

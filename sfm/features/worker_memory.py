@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import logging
-import os
 
 from backend.memory import available_memory
+from sfm.execution.process_pool import usable_cores
 
 logger = logging.getLogger(__name__)
 
@@ -16,9 +16,7 @@ def workers_for_memory(max_image_size: int) -> int:
     times the input's pixels, and a third more over the smaller octaves: about 230 bytes per
     input pixel of an image shrunk to ``max_image_size`` (taken as 4:3), plus the decoded
     full-size image."""
-    cores = (
-        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    )
+    cores = usable_cores()
     available = available_memory()
     if available is None:
         return cores
