@@ -51,6 +51,7 @@ from sfm.mapper.triangulation import refine_points
 log = logging.getLogger(__name__)
 
 GROWING_TOLERANCE = 1e-3
+GROWING_MAX_ITERATIONS = 25
 FINAL_TOLERANCE = 1e-4
 
 
@@ -84,8 +85,8 @@ class BundleAdjuster:
         neigh[i] = 0
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
-        self._adjust(free, tracks, "none", 25, tolerance=GROWING_TOLERANCE, optimizer="gauss_newton_or_lm",
-                     predictive=True)
+        self._adjust(free, tracks, "none", GROWING_MAX_ITERATIONS, tolerance=GROWING_TOLERANCE,
+                     optimizer="gauss_newton_or_lm", predictive=True)
         s.filter_observations(tracks)
 
     def global_(self, final: bool = False, tolerance: float = FINAL_TOLERANCE,
@@ -109,8 +110,8 @@ class BundleAdjuster:
                 self.refine_points(tracks)
         else:
             subset = self.track_subset(tracks)
-            self._adjust(free, subset, self._growing_level(), 25, GROWING_TOLERANCE, predictive=True,
-                         loss_scale=loss_scale)
+            self._adjust(free, subset, self._growing_level(), GROWING_MAX_ITERATIONS, GROWING_TOLERANCE,
+                         predictive=True, loss_scale=loss_scale)
             if len(subset) < len(tracks):
                 self.refine_points(np.setdiff1d(tracks, subset))
         s.drop_degenerate_cameras()
@@ -176,6 +177,15 @@ class BundleAdjuster:
             huber = self.opts.loss_scale / focal[s.cam_index[img]] if self.opts.loss != "none" else np.full(len(rows), 1e6)
             xyz = refine_points(s.R[img], s.t[img], s.obs_norm[rows], starts, s.track_xyz[chunk], huber)
             s.set_points(chunk, xyz)
+
+    def growing_options(self, refine: str, loss_scale: float) -> BAOptions:
+        """The options of a BA that stops as a growing model's global BA does
+        (``GROWING_MAX_ITERATIONS``, ``GROWING_TOLERANCE``, or the rest of the decrease predicted
+        below it), refining ``refine`` with the robust loss at ``loss_scale`` pixels: the
+        principal point's half-BAs (``sfm.mapper.self_calibration``)."""
+        return BAOptions(loss=self.opts.loss, loss_scale=loss_scale, refine_intrinsics=refine,
+                         max_iterations=GROWING_MAX_ITERATIONS, relative_tolerance=GROWING_TOLERANCE,
+                         predictive_stop=True)
 
     # ------------------------------------------------------------------ helpers
     def _growing_level(self) -> str:

@@ -36,13 +36,6 @@ from sfm.mapper.principal_point import MIN_HALF_IMAGES, PrincipalPointTest, chec
 
 log = logging.getLogger(__name__)
 
-# Each half of the split-sample step stops as a growing model's global BA does (25 iterations, a
-# relative decrease of 1e-3, or the rest of the decrease predicted below it): the calibration
-# step from where it stopped completes it.
-HALF_MAX_ITERATIONS = 25
-HALF_TOLERANCE = 1e-3
-
-
 def half_calibration(task: tuple[BAProblem, BAOptions]):
     """One half of the principal point's split-sample step (:meth:`SelfCalibration.halves`): the
     problem of one camera's half of the images, bundle-adjusted alone with ``options``, then the
@@ -174,9 +167,9 @@ class SelfCalibration:
         problems = [self.adjuster.problem(half, tracks, alone=True)[0] for half in halves]
         if any(problem is None for problem in problems):
             return None
-        options = BAOptions(loss=s.opts.loss, loss_scale=loss_scale, refine_intrinsics="all",
-                            max_iterations=HALF_MAX_ITERATIONS, relative_tolerance=HALF_TOLERANCE,
-                            predictive_stop=True)
+        # Each half stops as a growing model's global BA does; the calibration step from where
+        # it stopped completes its estimate (half_calibration).
+        options = self.adjuster.growing_options("all", loss_scale)
         together = sum(len(problem.obs_image) for problem in problems)  # both in memory at once
         first = run_beside(half_calibration, (problems[0], options), fits=not budget or together <= budget)
         try:
