@@ -24,7 +24,7 @@ from typing import Any
 
 from sfm.errors import InputError
 from sfm.execution.local import TaskResult, run_task
-from sfm.execution.process_pool import single_threaded, usable_cores
+from sfm.execution.process_pool import single_threaded, unguarded_call_site, usable_cores
 from sfm.execution.logs import collect_records, replay
 
 log = logging.getLogger(__name__)
@@ -54,6 +54,10 @@ class DaskExecutor:
             raise InputError("--executor dask needs the dist extra: pip install 'graphsfm[dist]'") from exc
         if workers < 0:
             raise ValueError(f"workers must be >= 0 (0: one per core), got {workers}")
+        site = unguarded_call_site() if scheduler is None else None
+        if site is not None:
+            raise InputError(f"{site} calls graphsfm outside `if __name__ == \"__main__\":`, which each worker of "
+                             "a Dask LocalCluster would run again: put the call under that guard")
         self.scheduler = scheduler
         self.workers = workers or usable_cores()
         self.address: str | None = scheduler

@@ -21,7 +21,9 @@ memory, say) raises :class:`WorkerDied`.
 Each worker process runs one task at a time with OpenCV's and BLAS's own threads limited to one
 (``sfm.execution.process_pool.single_threaded``): the parallelism is across processes.  Its log messages and progress
 events reach this process as they are made (``sfm.execution.logs``).  One worker runs the
-tasks in this process.
+tasks in this process, and so does a script that calls graphsfm outside ``if __name__ ==
+"__main__":`` (``sfm.execution.process_pool.unguarded_call_site``), with a warning that says
+where: every worker would run that call again.
 """
 
 from __future__ import annotations
@@ -38,10 +40,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from sfm.execution.logs import DETAILS, forwarded_logs, init_worker
-from sfm.execution.process_pool import pool_context, single_threaded, usable_cores
+from sfm.execution.process_pool import pool_context, single_threaded, unguarded_call_site, usable_cores
 from sfm.execution.spare_cores import spare_cores
 
 log = logging.getLogger(__name__)
+_WARNED: set[str] = set()  # the unguarded call sites already warned of
 
 
 @dataclass
@@ -94,6 +97,14 @@ class LocalExecutor:
         if workers < 0:
             raise ValueError(f"workers must be >= 0 (0: one per core), got {workers}")
         self.workers = workers or usable_cores()
+        site = unguarded_call_site() if self.workers > 1 else None
+        if site is not None:
+            if site not in _WARNED:
+                _WARNED.add(site)
+                log.warning("%s calls graphsfm outside `if __name__ == \"__main__\":`, which every worker "
+                            "process would run again: running in this process only; put the call under that "
+                            "guard to use %d workers", site, self.workers)
+            self.workers = 1
 
     def runs_in_process(self, num_items: int, max_workers: int = 0) -> bool:
         """Whether :meth:`map` of ``num_items`` items would run them in this process."""
