@@ -8,7 +8,8 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
 
 - Local BA after each registration (COLMAP's local bundle, OpenSfM's neighbourhood): the points
   the new image sees, with that image and the ``local_ba_num_images - 1`` registered images
-  sharing most of them free, every other image that sees them held.
+  sharing most of them free, every other image that sees them held; the intrinsics only of the
+  cameras whose registered images are all free (one camera per image: the new image's own).
 - Global BA when the model has grown by ``global_ba_ratio``: every registered image, on a subset
   of the tracks (TheiaSfM's selection: each image's best track per grid cell keeps the poses
   from drifting; the rest are re-estimated with the cameras held).
@@ -85,7 +86,7 @@ class BundleAdjuster:
         neigh[i] = 0
         best = np.argsort(-neigh, kind="stable")[: self.opts.local_ba_num_images - 1]
         free = np.concatenate([[i], best[neigh[best] > 0]])
-        self._adjust(free, tracks, "none", GROWING_MAX_ITERATIONS, tolerance=GROWING_TOLERANCE,
+        self._adjust(free, tracks, self._local_levels(free), GROWING_MAX_ITERATIONS, tolerance=GROWING_TOLERANCE,
                      optimizer="gauss_newton_or_lm", predictive=True)
         s.filter_observations(tracks)
 
@@ -188,6 +189,19 @@ class BundleAdjuster:
                          predictive_stop=True)
 
     # ------------------------------------------------------------------ helpers
+    def _local_levels(self, free: np.ndarray) -> list[str]:
+        """What a local BA refines of each camera: the growing model's level for a camera all of
+        whose registered images are free in it (one camera per image: the new image's own), none
+        for the others, whose intrinsics images outside the local BA also determine (COLMAP's
+        local BA holds the intrinsics of those cameras alone)."""
+        s = self.state
+        level = self._growing_level()
+        outside = np.zeros(len(s.priors), dtype=bool)
+        held = s.registered.copy()
+        held[free] = False
+        outside[np.unique(s.cam_index[held])] = True
+        return ["none" if outside[c] else level for c in range(len(s.priors))]
+
     def _growing_level(self) -> str:
         """What the growing model's global BAs refine: "auto" holds the principal point."""
         level = self.opts.intrinsics_refinement
@@ -276,8 +290,7 @@ class BundleAdjuster:
         if problem is None:
             return
         levels = [refine] * len(s.priors) if isinstance(refine, str) else list(refine)
-        if any(s.priors[c].fixed for c in cams):
-            levels = ["none"] * len(s.priors)
+        levels = ["none" if prior.fixed else level for prior, level in zip(s.priors, levels)]  # given intrinsics
         group_levels = tuple(levels[c] for c in cams)
         refined = any(level != "none" for level in group_levels)
         options = BAOptions(loss=self.opts.loss, loss_scale=self.opts.loss_scale if loss_scale is None else loss_scale,

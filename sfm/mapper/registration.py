@@ -6,14 +6,37 @@ RANSAC finds at least ``abs_pose_min_num_inliers`` inliers, and ``abs_pose_min_i
 of the points it sees, within ``abs_pose_max_error`` pixels; its pose is then refined by least
 squares on those inliers.  When PnP registers nothing, ``sfm.mapper.structureless`` tries the
 images from 2D-2D matches.
+
+An image whose camera no registered image uses yet (one camera per image, a second camera in the
+set) brings intrinsics the model has not estimated: COLMAP's mapper then estimates them with the
+pose (``RegisterNextImage``).  A focal length that is a guess (no EXIF, no ``--intrinsics``:
+1.2 x the longer side) is searched first (:func:`search_focal`); then the pose, the focal length
+and the first radial term are refined together on the PnP inliers
+(:func:`refine_pose_and_camera`), as far as ``intrinsics_refinement`` allows.  Registered with
+the guess instead, such an image keeps a pose distorted by the wrong focal length through the
+local BAs until the next global BA, and its first points are triangulated with it.
 """
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
+from backend.camera_models import focal_lengths, model_spec, project
 from sfm.mapper.state import MapperState
+
+# Focal lengths the search tries: the range of COLMAP's bogus-camera test (0.1 to 10 x the longer
+# image side), spaced by a constant ratio (30 candidates: 17% apart).  A candidate is judged by
+# the inliers a PnP RANSAC of FOCAL_SEARCH_ITERATIONS finds among FOCAL_SEARCH_POINTS of the
+# points (a random sample): enough for P3P's 3-point samples to hit an all-inlier one with
+# 99.9% confidence down to a 35% inlier ratio, and a count that ranks candidates as all points
+# would; the pose at the chosen focal length is then found from all points.
+FOCAL_SEARCH_RANGE = (0.1, 10.0)
+FOCAL_SEARCH_CANDIDATES = 30
+FOCAL_SEARCH_ITERATIONS = 160
+FOCAL_SEARCH_POINTS = 300
 
 
 def register_next(state: MapperState) -> bool:
@@ -25,14 +48,21 @@ def register_next(state: MapperState) -> bool:
         rows, X = state.visible_points(i)
         if len(rows) < opts.abs_pose_min_num_inliers:
             continue
+        c = state.cam_index[i]
+        level = state.new_camera_level(c)  # what is estimated with the pose: None, "focal", "focal_radial"
+        if level is not None:
+            state.reset_camera(c)  # from its prior, as COLMAP does for a camera no image has refined
+            rows, X = state.visible_points(i)
+            if not state.priors[c].prior_focal_length:
+                focal = search_focal(X, state.obs_norm[rows], state.focal(i), state.priors[c], opts.abs_pose_max_error,
+                                     opts.seed + i)
+                if focal is None:
+                    state.note_failure(i, len(rows))
+                    continue
+                state.set_focal(c, focal)
+                rows, X = state.visible_points(i)
         x = state.obs_norm[rows]
-        usac = cv2.UsacParams()
-        usac.threshold = opts.abs_pose_max_error / state.focal(i)
-        usac.confidence = 0.9999
-        usac.maxIterations = 10000
-        usac.randomGeneratorState = opts.seed + i
-        usac.isParallel = False
-        ok, _, rvec, tvec, inliers = cv2.solvePnPRansac(X, x, np.eye(3), None, params=usac)
+        ok, rvec, tvec, inliers = _pnp_ransac(X, x, opts.abs_pose_max_error / state.focal(i), 10000, opts.seed + i)
         if not ok or inliers is None:
             state.note_failure(i, len(rows))
             continue
@@ -44,6 +74,91 @@ def register_next(state: MapperState) -> bool:
         # local BA that follows refines the pose again, robustly and in pixels).
         rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], np.eye(3), None, rvec, tvec)
         R, _ = cv2.Rodrigues(rvec)
-        state.register(i, R, tvec.ravel())
+        t = tvec.ravel()
+        if level is not None:
+            prior = state.priors[c]
+            R, t, params = refine_pose_and_camera(X[inliers], state.obs_px[rows[inliers]], state.obs_sigma[rows[inliers]],
+                                                  R, t, prior.model, state.params[c], level, opts.loss, opts.loss_scale)
+            state.set_intrinsics(c, params)
+        state.register(i, R, t)
         return True
     return False
+
+
+def _pnp_ransac(X: np.ndarray, x_norm: np.ndarray, threshold: float, iterations: int, seed: int,
+                local_optimisation: bool = True):
+    """OpenCV's USAC PnP RANSAC on normalised coordinates: (ok, rvec, tvec, inliers).  Without
+    ``local_optimisation`` (its inner re-estimation from the inliers, two thirds of its time
+    here) for counting inliers only."""
+    usac = cv2.UsacParams()
+    if not local_optimisation:
+        usac.loMethod = cv2.LOCAL_OPTIM_NULL
+    usac.threshold = threshold
+    usac.confidence = 0.9999
+    usac.maxIterations = iterations
+    usac.randomGeneratorState = seed
+    usac.isParallel = False
+    ok, _, rvec, tvec, inliers = cv2.solvePnPRansac(X, x_norm, np.eye(3), None, params=usac)
+    return ok, rvec, tvec, inliers
+
+
+def search_focal(X: np.ndarray, x_norm: np.ndarray, focal: float, prior, max_error: float, seed: int) -> float | None:
+    """The focal length, of ``FOCAL_SEARCH_CANDIDATES`` spread over ``FOCAL_SEARCH_RANGE`` x the
+    longer image side, at which PnP RANSAC finds the most inliers within ``max_error`` pixels
+    among ``FOCAL_SEARCH_POINTS`` of the points (COLMAP's ``estimate_focal_length`` by sampled
+    focal lengths); None when none finds any.
+
+    ``x_norm`` are the points' normalised coordinates at ``focal`` with the prior's (zero)
+    distortion, so at focal ``f`` they are ``x_norm * focal / f``."""
+    size = float(max(prior.width, prior.height))
+    if len(X) > FOCAL_SEARCH_POINTS:
+        sample = np.sort(np.random.default_rng(seed).choice(len(X), FOCAL_SEARCH_POINTS, replace=False))
+        X, x_norm = X[sample], x_norm[sample]
+    best, best_count = None, 0
+    for f in np.geomspace(FOCAL_SEARCH_RANGE[0] * size, FOCAL_SEARCH_RANGE[1] * size, FOCAL_SEARCH_CANDIDATES):
+        ok, _, _, inliers = _pnp_ransac(X, x_norm * (focal / f), max_error / f, FOCAL_SEARCH_ITERATIONS, seed,
+                                        local_optimisation=False)
+        count = 0 if not ok or inliers is None else len(inliers)
+        if count > best_count:
+            best, best_count = float(f), count
+    return best
+
+
+def refine_pose_and_camera(X: np.ndarray, pixels: np.ndarray, sigmas: np.ndarray, R: np.ndarray, t: np.ndarray,
+                           model: str, params: np.ndarray, level: str, loss: str, loss_scale: float):
+    """``cam_from_world`` and the camera's focal length (with ``level`` "focal_radial" also its
+    first radial term, if the model has one) minimising the robust reprojection error of the
+    points ``X`` at ``pixels``, in units of each observation's ``sigmas`` as in bundle
+    adjustment (COLMAP's ``RefineAbsolutePose`` with
+    ``refine_focal_length`` and ``refine_extra_params``); principal point, aspect ratio and any
+    further distortion terms held.  Returns (R, t, params); the start when the refinement fails
+    or ends with a focal length that is not positive."""
+    spec = model_spec(model)
+    free = list(spec.focal_idx)
+    radial = spec.extra_idx[:1] if level == "focal_radial" else ()
+    fx, fy = focal_lengths(model, params)
+    aspect = fy / fx
+
+    def camera(v: np.ndarray) -> np.ndarray:
+        p = np.array(params, dtype=np.float64)
+        p[free[0]] = v[6]
+        if len(free) > 1:
+            p[free[1]] = v[6] * aspect
+        if radial:
+            p[radial[0]] = v[7]
+        return p
+
+    def residuals(v: np.ndarray) -> np.ndarray:
+        points_cam = Rotation.from_rotvec(v[:3]).apply(X) + v[3:6]
+        r = (project(model, camera(v), points_cam) - pixels) / sigmas[:, None]
+        return np.where(np.isfinite(r), r, 1e6).ravel()
+
+    start = np.concatenate([Rotation.from_matrix(R).as_rotvec(), t, [fx], [params[radial[0]]] if radial else []])
+    try:
+        result = least_squares(residuals, start, method="trf", x_scale="jac",
+                               loss={"none": "linear"}.get(loss, loss), f_scale=loss_scale)
+    except (ValueError, np.linalg.LinAlgError):
+        return R, t, np.asarray(params, dtype=np.float64)
+    if not result.success or result.x[6] <= 0:
+        return R, t, np.asarray(params, dtype=np.float64)
+    return Rotation.from_rotvec(result.x[:3]).as_matrix(), result.x[3:6], camera(result.x)

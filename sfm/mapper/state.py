@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from backend.camera_models import focal_lengths, has_bogus_params, reprojection_errors, unproject
+from backend.camera_models import focal_lengths, has_bogus_params, model_spec, reprojection_errors, unproject
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.options import MapperOptions
 from sfm.features.sift import localization_sigma
@@ -129,6 +129,33 @@ class MapperState:
         for c in changed:
             self.params[c] = np.asarray(params_by_key[self.cam_keys[c]], dtype=np.float64)
         self._update_normalised(changed)
+
+    def new_camera_level(self, c: int) -> str | None:
+        """What registering an image of camera ``c`` estimates of the camera with the pose
+        (``sfm.mapper.registration``): "focal", or "focal_radial", as ``intrinsics_refinement``
+        allows; None when the camera is held (given intrinsics, or ``intrinsics_refinement``
+        none) or a registered image of the model already uses it (its intrinsics are then the
+        model's estimate)."""
+        level = self.opts.intrinsics_refinement
+        if self.priors[c].fixed or level == "none" or self.registered[self.cam_index == c].any():
+            return None
+        return "focal" if level == "focal" else "focal_radial"
+
+    def reset_camera(self, c: int) -> None:
+        """Camera ``c`` back to its prior (normalised coordinates follow)."""
+        self.set_intrinsics(c, self.priors[c].params)
+
+    def set_focal(self, c: int, focal: float) -> None:
+        """Camera ``c`` with focal length ``focal`` (both focal lengths scaled alike)."""
+        spec = model_spec(self.priors[c].model)
+        params = np.array(self.params[c], dtype=np.float64)
+        params[list(spec.focal_idx)] *= focal / self.camera_focal(c)
+        self.set_intrinsics(c, params)
+
+    def set_intrinsics(self, c: int, params: np.ndarray) -> None:
+        """Camera ``c`` with ``params`` (normalised coordinates follow)."""
+        self.params[c] = np.array(params, dtype=np.float64)
+        self._update_normalised([c])
 
     def set_poses(self, poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
         """Register the named images with the given ``cam_from_world`` poses (the merged
