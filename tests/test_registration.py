@@ -15,7 +15,8 @@ from backend.camera_models import project
 from sfm.evaluation.ground_truth import read_gt_table
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.payload import CameraPrior
-from sfm.mapper.registration import FOCAL_SEARCH_CANDIDATES, FOCAL_SEARCH_RANGE, refine_pose_and_camera, register_next, search_focal
+from sfm.mapper.registration import (FOCAL_SEARCH_CANDIDATES, FOCAL_SEARCH_RANGE, _significant, refine_pose_and_camera,
+                                    register_next, search_focal)
 from sfm.mapper.state import MapperState
 from sfm.stages.payloads import load_payloads
 from sfm.stages.synth import run_synth
@@ -60,13 +61,50 @@ def test_pose_focal_and_radial_term_refined_together_on_the_inliers(level):
     start = truth.copy()
     start[0], start[3] = 900.0 * 1.08, 0.0  # a search's candidate: up to 8% off, no distortion
     R0 = Rotation.from_rotvec([0.003, 0.0, -0.002]).as_matrix() @ R
-    R1, t1, params = refine_pose_and_camera(X, pixels, np.ones(len(X)), R0, t * 1.01, "SIMPLE_RADIAL", start, level,
-                                            "huber", 1.0)
+    R1, t1, params, covariance = refine_pose_and_camera(X, pixels, np.ones(len(X)), R0, t * 1.01, "SIMPLE_RADIAL",
+                                                        start, level, "huber", 1.0)
+    assert covariance.shape == ((2, 2) if level == "focal_radial" else (1, 1))
+    assert np.sqrt(covariance[0, 0]) < 5.0  # px: a near, wide view determines its focal length
     assert abs(params[0] / 900.0 - 1) < 1e-3
     assert abs(params[3] - k1) < 2e-3
     np.testing.assert_allclose(params[1:3], truth[1:3])  # principal point held
     assert np.degrees(Rotation.from_matrix(R1 @ R.T).magnitude()) < 0.01
     np.testing.assert_allclose(t1, t, atol=2e-3)
+
+
+def test_a_far_narrow_view_does_not_determine_its_focal_length():
+    """Points 40 units away and 1 deep, seen at 1% of their distance across: the focal length
+    trades against the distance, so a 20% change of it is within its 3-sigma test, while the
+    near view above pins it to a few pixels."""
+    rng = np.random.default_rng(3)
+    num = 400
+    points_cam = np.column_stack([rng.uniform(-0.2, 0.2, num), rng.uniform(-0.15, 0.15, num), rng.uniform(40, 41, num)])
+    params = np.array([20000.0, (WIDTH - 1) / 2, (HEIGHT - 1) / 2, 0.0])
+    pixels = project("SIMPLE_RADIAL", params, points_cam) + rng.normal(0, 0.5, (num, 2))
+    _, _, refined, covariance = refine_pose_and_camera(points_cam, pixels, np.ones(num), np.eye(3), np.zeros(3),
+                                                       "SIMPLE_RADIAL", params, "focal", "huber", 1.0)
+    assert not _significant(np.array([0.2 * refined[0]]), covariance)
+
+
+def test_an_image_whose_view_leaves_a_bogus_camera_registers_with_the_prior(tmp_path, monkeypatch):
+    """When the estimate is a camera no lens has (here a focal length of 20 x the image side),
+    the image registers as before, with its camera at the prior."""
+    import sfm.mapper.registration as registration
+
+    state, _, focal = _per_image_state(tmp_path, shared=False)
+    original = registration.refine_pose_and_camera
+
+    def bogus(*args, **kwargs):
+        R, t, params, covariance = original(*args, **kwargs)
+        params = params.copy()
+        params[0] = 20 * max(state.priors[2].width, state.priors[2].height)
+        return R, t, params, covariance
+
+    monkeypatch.setattr(registration, "refine_pose_and_camera", bogus)
+    assert register_next(state)
+    c = state.cam_index[state.last_registered]
+    np.testing.assert_array_equal(state.params[c], state.priors[c].params)
+    assert state.camera_focal(c) == pytest.approx(1.2 * focal)
 
 
 def _per_image_state(tmp_path, shared: bool, opts: MapperOptions = MapperOptions()) -> tuple[MapperState, dict, float]:

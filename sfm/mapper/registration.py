@@ -24,7 +24,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from backend.camera_models import focal_lengths, model_spec, project
+from backend.camera_models import focal_lengths, has_bogus_params, model_spec, project
+from sfm.mapper.distortion import significance_chi2
 from sfm.mapper.state import MapperState
 
 # Focal lengths the search tries: the range of COLMAP's bogus-camera test (0.1 to 10 x the longer
@@ -37,6 +38,9 @@ FOCAL_SEARCH_RANGE = (0.1, 10.0)
 FOCAL_SEARCH_CANDIDATES = 30
 FOCAL_SEARCH_ITERATIONS = 160
 FOCAL_SEARCH_POINTS = 300
+# Inliers the refinement of pose and camera uses at most (a random sample): a thousand points fix
+# one view's focal length to a fraction of a percent; the local BA that follows uses them all.
+REFINE_POINTS = 1000
 
 
 def register_next(state: MapperState) -> bool:
@@ -45,44 +49,113 @@ def register_next(state: MapperState) -> bool:
     (``MapperState.next_image_candidates(stalled=True)``)."""
     opts = state.opts
     for i in state.next_image_candidates(stalled=True):
-        rows, X = state.visible_points(i)
-        if len(rows) < opts.abs_pose_min_num_inliers:
+        if len(state.visible_points(i)[0]) < opts.abs_pose_min_num_inliers:
             continue
         c = state.cam_index[i]
         level = state.new_camera_level(c)  # what is estimated with the pose: None, "focal", "focal_radial"
+        estimated = None
         if level is not None:
             state.reset_camera(c)  # from its prior, as COLMAP does for a camera no image has refined
-            rows, X = state.visible_points(i)
-            if not state.priors[c].prior_focal_length:
-                focal = search_focal(X, state.obs_norm[rows], state.focal(i), state.priors[c], opts.abs_pose_max_error,
-                                     opts.seed + i)
-                if focal is None:
-                    state.note_failure(i, len(rows))
-                    continue
-                state.set_focal(c, focal)
-                rows, X = state.visible_points(i)
-        x = state.obs_norm[rows]
-        ok, rvec, tvec, inliers = _pnp_ransac(X, x, opts.abs_pose_max_error / state.focal(i), 10000, opts.seed + i)
-        if not ok or inliers is None:
-            state.note_failure(i, len(rows))
-            continue
-        inliers = inliers.ravel()
-        if len(inliers) < opts.abs_pose_min_num_inliers or len(inliers) < opts.abs_pose_min_inlier_ratio * len(rows):
-            state.note_failure(i, len(rows))
-            continue
-        # Least squares on the RANSAC inliers, in normalised coordinates like the RANSAC (the
-        # local BA that follows refines the pose again, robustly and in pixels).
-        rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], np.eye(3), None, rvec, tvec)
-        R, _ = cv2.Rodrigues(rvec)
-        t = tvec.ravel()
-        if level is not None:
-            prior = state.priors[c]
-            R, t, params = refine_pose_and_camera(X[inliers], state.obs_px[rows[inliers]], state.obs_sigma[rows[inliers]],
-                                                  R, t, prior.model, state.params[c], level, opts.loss, opts.loss_scale)
+            estimated = _pose_and_camera(state, i, level)
+        if estimated is not None:
+            R, t, params = estimated
             state.set_intrinsics(c, params)
+        else:
+            if level is not None:
+                state.reset_camera(c)  # the view does not determine its camera: the prior's values
+            found = _pose(state, i)
+            if found is None:
+                state.note_failure(i, len(state.visible_points(i)[0]))
+                continue
+            R, t, _ = found
         state.register(i, R, t)
         return True
     return False
+
+
+def _pose(state: MapperState, i: int):
+    """PnP RANSAC of image ``i`` with its camera's current intrinsics, refined by least squares
+    on the inliers: ``(R, t, inlier rows)``, or None when PnP finds too few inliers."""
+    opts = state.opts
+    rows, X = state.visible_points(i)
+    x = state.obs_norm[rows]
+    ok, rvec, tvec, inliers = _pnp_ransac(X, x, opts.abs_pose_max_error / state.focal(i), 10000, opts.seed + i)
+    if not ok or inliers is None:
+        return None
+    inliers = inliers.ravel()
+    if len(inliers) < opts.abs_pose_min_num_inliers or len(inliers) < opts.abs_pose_min_inlier_ratio * len(rows):
+        return None
+    # Least squares on the RANSAC inliers, in normalised coordinates like the RANSAC (the
+    # local BA that follows refines the pose again, robustly and in pixels).
+    rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], np.eye(3), None, rvec, tvec)
+    R, _ = cv2.Rodrigues(rvec)
+    return R, tvec.ravel(), rows[inliers]
+
+
+def _pose_and_camera(state: MapperState, i: int, level: str):
+    """Image ``i``'s pose with its camera (new to the model, at its prior) estimated: the focal
+    length searched when the prior's is a guess, PnP at it, then pose, focal length and (with
+    ``level`` "focal_radial") the first radial term refined together.  A radial term the view
+    does not determine (its change from the prior within the 3-sigma test of
+    ``sfm.mapper.distortion``) is held and the focal length refined alone.  ``(R, t, params)``,
+    or None when the search or PnP fail, or the view does not determine the focal length either
+    (a far, narrow view: focal length and distance trade against each other) or leaves a
+    camera no lens has (``has_bogus_params``): the prior is then as good a start."""
+    opts = state.opts
+    c = state.cam_index[i]
+    prior = state.priors[c]
+    if not prior.prior_focal_length:
+        rows, X = state.visible_points(i)
+        focal = search_focal(X, state.obs_norm[rows], state.focal(i), prior, opts.abs_pose_max_error, opts.seed + i)
+        if focal is None:
+            return None
+        state.set_focal(c, focal)
+    found = _pose(state, i)
+    if found is None:
+        return None
+    R, t, rows = found
+    if len(rows) > REFINE_POINTS:
+        rows = np.sort(np.random.default_rng(opts.seed + i).choice(rows, REFINE_POINTS, replace=False))
+    X, pixels, sigmas = state.track_xyz[state.obs_track[rows]], state.obs_px[rows], state.obs_sigma[rows]
+    for level in (("focal_radial", "focal") if level == "focal_radial" else ("focal",)):
+        refined = refine_pose_and_camera(X, pixels, sigmas, R, t, prior.model, state.params[c], level, opts.loss,
+                                         opts.loss_scale)
+        if refined is None:
+            return None
+        R_new, t_new, params, covariance = refined
+        radial = model_spec(prior.model).extra_idx[:1]
+        if level == "focal" or not radial or _significant(params[list(radial)] - prior.params[list(radial)],
+                                                          covariance[1:, 1:]):
+            break
+    focal_change = focal_lengths(prior.model, params)[0] - focal_lengths(prior.model, prior.params)[0]
+    if not _significant(np.array([focal_change]), covariance[:1, :1]) or has_bogus_params(
+            prior.model, params, prior.width, prior.height):
+        return None
+    return R_new, t_new, params
+
+
+def _covariance(jacobian: np.ndarray) -> np.ndarray:
+    """The inverse of the Gauss-Newton Hessian ``J^T J``, inverted at unit diagonal (parameters
+    in pixels and radians differ by orders of magnitude), infinite when it is singular: a
+    direction the data do not determine has no finite variance (a pseudo-inverse would report
+    it as exactly known)."""
+    hessian = jacobian.T @ jacobian
+    scale = np.sqrt(np.maximum(np.diag(hessian), 1e-300))
+    try:
+        inverse = np.linalg.inv(hessian / np.outer(scale, scale))
+    except np.linalg.LinAlgError:
+        return np.full_like(hessian, np.inf)
+    return inverse / np.outer(scale, scale)
+
+
+def _significant(change: np.ndarray, covariance: np.ndarray) -> bool:
+    """Whether ``change`` (of parameters with ``covariance``) passes the 3-sigma chi-square test
+    the final BAs' self-calibration applies (``sfm.mapper.distortion.significance_chi2``)."""
+    try:
+        chi2 = float(change @ np.linalg.solve(covariance, change))
+    except (np.linalg.LinAlgError, ValueError):
+        return False
+    return np.isfinite(chi2) and chi2 > significance_chi2(len(change))
 
 
 def _pnp_ransac(X: np.ndarray, x_norm: np.ndarray, threshold: float, iterations: int, seed: int,
@@ -129,10 +202,11 @@ def refine_pose_and_camera(X: np.ndarray, pixels: np.ndarray, sigmas: np.ndarray
     """``cam_from_world`` and the camera's focal length (with ``level`` "focal_radial" also its
     first radial term, if the model has one) minimising the robust reprojection error of the
     points ``X`` at ``pixels``, in units of each observation's ``sigmas`` as in bundle
-    adjustment (COLMAP's ``RefineAbsolutePose`` with
-    ``refine_focal_length`` and ``refine_extra_params``); principal point, aspect ratio and any
-    further distortion terms held.  Returns (R, t, params); the start when the refinement fails
-    or ends with a focal length that is not positive."""
+    adjustment (COLMAP's ``RefineAbsolutePose`` with ``refine_focal_length`` and
+    ``refine_extra_params``); principal point, aspect ratio and any further distortion terms
+    held.  Returns ``(R, t, params, covariance)``, the covariance of the refined intrinsics
+    (focal length, then the radial term) from the Gauss-Newton Hessian of the whitened errors;
+    None when the refinement fails or ends with a focal length that is not positive."""
     spec = model_spec(model)
     free = list(spec.focal_idx)
     radial = spec.extra_idx[:1] if level == "focal_radial" else ()
@@ -158,7 +232,8 @@ def refine_pose_and_camera(X: np.ndarray, pixels: np.ndarray, sigmas: np.ndarray
         result = least_squares(residuals, start, method="trf", x_scale="jac",
                                loss={"none": "linear"}.get(loss, loss), f_scale=loss_scale)
     except (ValueError, np.linalg.LinAlgError):
-        return R, t, np.asarray(params, dtype=np.float64)
+        return None
+    covariance = _covariance(result.jac)[6:, 6:]
     if not result.success or result.x[6] <= 0:
-        return R, t, np.asarray(params, dtype=np.float64)
-    return Rotation.from_rotvec(result.x[:3]).as_matrix(), result.x[3:6], camera(result.x)
+        return None
+    return Rotation.from_rotvec(result.x[:3]).as_matrix(), result.x[3:6], camera(result.x), covariance
