@@ -50,3 +50,15 @@ def test_the_sets_are_the_folders_with_images_and_a_pose_table(tmp_path):
             (tmp_path / name / "gt").mkdir()
             (tmp_path / name / "gt" / "cameras_gt_opencv.txt").write_text("# empty\n")
     assert gt_sets(tmp_path) == ["with_gt"]
+
+
+def test_the_per_image_run_is_held_to_colmaps_best_without_the_cluster_tolerance():
+    rows = [
+        _row("graphsfm, one camera per image", "10/10", 0.595, 0.92),
+        _row("colmap incremental (that database)", "10/10", 0.60, 0.91),
+        _row("colmap global (that database)", "10/10", 0.58, 0.915),
+    ]
+    lines = verdict(rows, 10)
+    assert lines[2] == "graphsfm, one camera per image: DOES NOT MEET all images and AUC@1, AUC@5 >= COLMAP's best"
+    rows[0] = _row("graphsfm, one camera per image", "10/10", 0.60, 0.92)
+    assert verdict(rows, 10)[2].startswith("graphsfm, one camera per image: meets")
