@@ -20,12 +20,15 @@ Design, the loop (``sfm.mapper.incremental``):
    registered by PnP RANSAC (``abs_pose_min_num_inliers`` 30, ``abs_pose_min_inlier_ratio``
    0.25, ``abs_pose_max_error`` 12 px) and refined on its inliers; when PnP registers nothing,
    the structure-less fallback registers from 2D-2D matches (COLMAP 4's default behaviour).
+   The first image of a camera new to the model also estimates that camera: focal length
+   searched when it is a guess, refined with the pose, kept where the view determines it.
 4. Triangulation of the tracks it newly sees: batched multi-view DLT with angle
    (``min_tri_angle`` 1.5 degrees), depth and reprojection (``max_reproj_error`` 4 px) checks.
    A two-view track (two keypoints with one verified match each in the whole database: no
    third image confirms it) is triangulated only in the initial pair
    (``ignore_two_view_tracks``, COLMAP's default).
-5. Local BA around the new image (``local_ba_num_images`` 6); a global BA, re-triangulation
+5. Local BA around the new image (``local_ba_num_images`` 6; it refines the intrinsics of a
+   camera only when all of that camera's registered images are free in it); a global BA, re-triangulation
    and filtering whenever the model has grown by ``global_ba_ratio`` (1.2), and after every
    image while the model is young.  A camera whose refined intrinsics leave the range a lens can
    have takes its images out of the model (COLMAP's filter).
