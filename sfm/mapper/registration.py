@@ -97,10 +97,12 @@ def _pose_and_camera(state: MapperState, i: int, level: str):
     length searched when the prior's is a guess, PnP at it, then pose, focal length and (with
     ``level`` "focal_radial") the first radial term refined together.  A radial term the view
     does not determine (its change from the prior within the 3-sigma test of
-    ``sfm.mapper.distortion``) is held and the focal length refined alone.  ``(R, t, params)``,
-    or None when the search or PnP fail, or the view does not determine the focal length either
-    (a far, narrow view: focal length and distance trade against each other) or leaves a
-    camera no lens has (``has_bogus_params``): the prior is then as good a start."""
+    ``sfm.mapper.distortion``) is held and the focal length refined alone.  Returns
+    ``(R, t, params)``.  Where the view does not determine the focal length either (a far,
+    narrow view: focal length and distance trade against each other) or leaves a camera no lens
+    has (``has_bogus_params``), the prior stands: the pose PnP found with it, or None when the
+    search had moved away from a guessed focal length (the caller poses the image at the
+    prior); None also when the search or PnP fail."""
     opts = state.opts
     c = state.cam_index[i]
     prior = state.priors[c]
@@ -117,20 +119,21 @@ def _pose_and_camera(state: MapperState, i: int, level: str):
     if len(rows) > REFINE_POINTS:
         rows = np.sort(np.random.default_rng(opts.seed + i).choice(rows, REFINE_POINTS, replace=False))
     X, pixels, sigmas = state.track_xyz[state.obs_track[rows]], state.obs_px[rows], state.obs_sigma[rows]
-    for level in (("focal_radial", "focal") if level == "focal_radial" else ("focal",)):
-        refined = refine_pose_and_camera(X, pixels, sigmas, R, t, prior.model, state.params[c], level, opts.loss,
-                                         opts.loss_scale)
+    radial = model_spec(prior.model).extra_idx[:1]
+    for refined_level in (("focal_radial", "focal") if level == "focal_radial" and radial else ("focal",)):
+        refined = refine_pose_and_camera(X, pixels, sigmas, R, t, prior.model, state.params[c], refined_level,
+                                         opts.loss, opts.loss_scale)
         if refined is None:
             return None
         R_new, t_new, params, covariance = refined
-        radial = model_spec(prior.model).extra_idx[:1]
-        if level == "focal" or not radial or _significant(params[list(radial)] - prior.params[list(radial)],
-                                                          covariance[1:, 1:]):
+        if refined_level == "focal" or _significant(params[list(radial)] - prior.params[list(radial)],
+                                                    covariance[1:, 1:]):
             break
     focal_change = focal_lengths(prior.model, params)[0] - focal_lengths(prior.model, prior.params)[0]
-    if not _significant(np.array([focal_change]), covariance[:1, :1]) or has_bogus_params(
-            prior.model, params, prior.width, prior.height):
-        return None
+    if has_bogus_params(prior.model, params, prior.width, prior.height) or not _significant(
+            np.array([focal_change]), covariance[:1, :1]):
+        # the prior stands; PnP already posed the image with it unless the search moved it
+        return (R, t, np.array(prior.params, dtype=np.float64)) if prior.prior_focal_length else None
     return R_new, t_new, params
 
 
