@@ -155,16 +155,20 @@ def test_a_camera_the_model_already_uses_is_left_as_the_model_has_it(tmp_path):
     np.testing.assert_array_equal(state.params[2], estimated)
 
 
-def test_a_local_ba_refines_the_cameras_whose_images_are_all_free_and_never_a_given_one(tmp_path, monkeypatch):
-    """After a registration, the local BA refines each camera all of whose registered images are
-    free in it (here one camera per image: the free images' own); the exact, given camera of the
-    initial pair stays held, and no longer holds the others with it."""
-    import sfm.mapper.bundle_adjuster as mapper_ba
-
-    state, _, _ = _per_image_state(tmp_path, shared=False, opts=MapperOptions(local_ba_num_images=2))
-    for _ in range(8):
+def _grown(tmp_path, registrations: int, opts: MapperOptions = MapperOptions()) -> MapperState:
+    """The one-camera-per-image state with ``registrations`` more images registered and
+    triangulated."""
+    state, _, _ = _per_image_state(tmp_path, shared=False, opts=opts)
+    for _ in range(registrations):
         assert register_next(state)
         state.triangulate_new(state.last_registered)
+    return state
+
+
+def _adjustments(monkeypatch) -> list:
+    """The (problem, refine levels) of every BA the mapper runs from now on."""
+    import sfm.mapper.bundle_adjuster as mapper_ba
+
     seen = []
     original = mapper_ba.bundle_adjust_partitioned
 
@@ -172,6 +176,18 @@ def test_a_local_ba_refines_the_cameras_whose_images_are_all_free_and_never_a_gi
         seen.append((problem, options.refine_intrinsics))
         return original(problem, parts, options, **kwargs)
 
+    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
+    return seen
+
+
+def test_a_local_ba_refines_the_cameras_whose_images_are_all_free_and_never_a_given_one(tmp_path, monkeypatch):
+    """After a registration, the local BA refines each camera all of whose registered images are
+    free in it (here one camera per image: the free images' own); the exact, given camera of the
+    initial pair stays held, and no longer holds the others with it."""
+    import sfm.mapper.bundle_adjuster as mapper_ba
+
+    state = _grown(tmp_path, 8, MapperOptions(local_ba_num_images=2))
+    seen = _adjustments(monkeypatch)
     built = []
     original_problem = mapper_ba.BundleAdjuster.problem
 
@@ -179,7 +195,6 @@ def test_a_local_ba_refines_the_cameras_whose_images_are_all_free_and_never_a_gi
         built.append(original_problem(self, *args, **kwargs))
         return built[-1]
 
-    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
     monkeypatch.setattr(mapper_ba.BundleAdjuster, "problem", problem_spy)
     mapper_ba.BundleAdjuster(state).local(state.last_registered)
     [(problem, levels)] = seen
@@ -202,20 +217,10 @@ def test_a_given_camera_is_held_alone_in_a_global_ba(tmp_path, monkeypatch):
     focal lengths of the other images' cameras (it used to hold every camera with it)."""
     import sfm.mapper.bundle_adjuster as mapper_ba
 
-    state, _, _ = _per_image_state(tmp_path, shared=False)
-    for _ in range(3):
-        assert register_next(state)
-        state.triangulate_new(state.last_registered)
-    seen = []
-    original = mapper_ba.bundle_adjust_partitioned
-
-    def spy(problem, parts, options, **kwargs):
-        seen.append(options.refine_intrinsics)
-        return original(problem, parts, options, **kwargs)
-
-    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
+    state = _grown(tmp_path, 3)
+    seen = _adjustments(monkeypatch)
     mapper_ba.BundleAdjuster(state).global_()
     cameras = np.unique(state.cam_index[state.registered])
     given = [state.priors[c].fixed for c in cameras]
     assert any(given) and not all(given)
-    assert tuple(seen[0]) == tuple("none" if g else "focal_radial" for g in given)
+    assert tuple(seen[0][1]) == tuple("none" if g else "focal_radial" for g in given)
