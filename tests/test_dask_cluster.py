@@ -55,15 +55,20 @@ class LoopbackCluster:
         return self.client.run(os.getpid)
 
     def close(self) -> None:
+        """Stop the workers, then the scheduler (a worker that stops tells its scheduler, and
+        waited for one already stopping); a process that outlives 20 s is killed, and every one
+        is reaped."""
         self.client.close()
-        for p in [*self.workers, self.scheduler]:
-            if p.poll() is None:
-                p.terminate()
-        for p in [*self.workers, self.scheduler]:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        for group in (self.workers, [self.scheduler]):
+            for p in group:
+                if p.poll() is None:
+                    p.terminate()
+            for p in group:
+                try:
+                    p.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
 
 
 @pytest.fixture
