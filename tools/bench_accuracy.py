@@ -94,6 +94,13 @@ def graphsfm_default(images: Path, workspace: Path, recording: bool) -> tuple[Pa
     return workspace / "sparse" / "0", time.perf_counter() - t0, report
 
 
+def stamp(rows: list[dict], context: dict) -> None:
+    """Each row's date, machine and code (pycolmap's version for COLMAP's rows)."""
+    for r in rows:
+        r.update({"date": context["date"], "machine": context["machine"],
+                  "code": peer_version() if r["method"].startswith("colmap") else context["code"]})
+
+
 def graphsfm_per_image(images: Path, workspace: Path) -> tuple[Path, float, dict]:
     """``reconstruct`` from nothing with ``camera_mode="per-image"``, the recording off."""
     fresh(workspace)
@@ -111,9 +118,7 @@ def per_image_rows(images: Path, where: Path, gt: dict, context: dict) -> tuple[
         model, seconds = run_colmap_mapper(where / "graphsfm_per_image" / "database.db", where / f"colmap_per_image_{kind}",
                                            kind)
         rows.append(evaluate_row(f"colmap {kind} (that database)", model, seconds, gt))
-    for r in rows:
-        r.update({"date": context["date"], "machine": context["machine"],
-                  "code": peer_version() if r["method"].startswith("colmap") else context["code"]})
+    stamp(rows, context)
     return rows, verdict(rows, len(gt)) + notes
 
 
@@ -194,9 +199,7 @@ def bench_set(data: Path, name: str, out: Path, threads: int, recording: bool, c
         for kind in ("incremental", "global"):
             model, seconds = run_colmap_mapper(colmap_db, where / f"colmap_frontend_{kind}", kind)
             add(f"colmap extract+match, {kind}", model, front_s + seconds)
-    for r in rows:
-        r.update({"date": context["date"], "machine": context["machine"],
-                  "code": peer_version() if r["method"].startswith("colmap") else context["code"]})
+    stamp(rows, context)
     return rows, verdict(rows, len(gt)) + notes, second_opinions(data / name, gt, models)
 
 

@@ -54,6 +54,14 @@ def significance_chi2(dof: int) -> float:
     return float(chdtri(dof, 1.0 - SIGNIFICANCE_LEVEL))
 
 
+def chi_square(change: np.ndarray, covariance: np.ndarray) -> float:
+    """``d^T C^-1 d`` of a ``change`` d with ``covariance`` C; NaN when C is singular."""
+    try:
+        return float(change @ np.linalg.solve(covariance, change))
+    except np.linalg.LinAlgError:
+        return float("nan")
+
+
 def distortion_components(model: str) -> list[int]:
     """Where ``model``'s distortion parameters sit in the Cal3DS2 vector [fx, fy, s, u0, v0, k1,
     k2, p1, p2] (empty for the pinhole models)."""
@@ -118,9 +126,8 @@ def check_distortion(model: str, nominal_ds2: np.ndarray, estimate_ds2: np.ndarr
                               "singular covariance: refined as COLMAP does")
     if not np.all(np.isfinite(cov)) or np.any(std <= 0):
         return singular
-    try:
-        chi2 = float(shift @ np.linalg.solve(cov, shift))
-    except np.linalg.LinAlgError:
+    chi2 = chi_square(shift, cov)
+    if not np.isfinite(chi2):
         return singular
     if chi2 <= threshold:
         return DistortionTest(False, tuple(shift), tuple(std), chi2, threshold, "not significant")

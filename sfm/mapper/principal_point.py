@@ -44,6 +44,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from sfm.mapper.distortion import chi_square
+
 # Chi-square quantile of 2 degrees of freedom at 0.9973 (the two-sided 3-sigma probability):
 # -2 ln(1 - 0.9973).
 SIGNIFICANCE_CHI2 = float(-2.0 * np.log(1.0 - 0.9973))
@@ -136,10 +138,7 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     pa, pb = np.asarray(a, float)[list(PP)], np.asarray(b, float)[list(PP)]
     pooled = np.asarray(cov_a, float)[np.ix_(PP, PP)] + np.asarray(cov_b, float)[np.ix_(PP, PP)]
     d = pa - pb
-    try:
-        chi2 = float(d @ np.linalg.solve(pooled, d))
-    except np.linalg.LinAlgError:
-        chi2 = float("nan")
+    chi2 = chi_square(d, pooled)
     shifts = (tuple(pa - nominal), tuple(pb - nominal))
     if not np.isfinite(chi2):
         return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)

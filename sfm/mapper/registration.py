@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from backend.camera_models import focal_lengths, has_bogus_params, model_spec, project
-from sfm.mapper.distortion import significance_chi2
+from sfm.mapper.distortion import chi_square, significance_chi2
 from sfm.mapper.state import MapperState
 
 # Focal lengths the search tries: the range of COLMAP's bogus-camera test (0.1 to 10 x the longer
@@ -49,7 +49,8 @@ def register_next(state: MapperState) -> bool:
     (``MapperState.next_image_candidates(stalled=True)``)."""
     opts = state.opts
     for i in state.next_image_candidates(stalled=True):
-        if len(state.visible_points(i)[0]) < opts.abs_pose_min_num_inliers:
+        visible = len(state.visible_points(i)[0])
+        if visible < opts.abs_pose_min_num_inliers:
             continue
         c = state.cam_index[i]
         level = state.new_camera_level(c)  # what is estimated with the pose: None, "focal", "focal_radial"
@@ -65,7 +66,7 @@ def register_next(state: MapperState) -> bool:
                 state.reset_camera(c)  # the view does not determine its camera: the prior's values
             found = _pose(state, i)
             if found is None:
-                state.note_failure(i, len(state.visible_points(i)[0]))
+                state.note_failure(i, visible)
                 continue
             R, t, _ = found
         state.register(i, R, t)
@@ -154,11 +155,9 @@ def _covariance(jacobian: np.ndarray) -> np.ndarray:
 def _significant(change: np.ndarray, covariance: np.ndarray) -> bool:
     """Whether ``change`` (of parameters with ``covariance``) passes the 3-sigma chi-square test
     the final BAs' self-calibration applies (``sfm.mapper.distortion.significance_chi2``)."""
-    try:
-        chi2 = float(change @ np.linalg.solve(covariance, change))
-    except (np.linalg.LinAlgError, ValueError):
-        return False
-    return np.isfinite(chi2) and chi2 > significance_chi2(len(change))
+    with np.errstate(invalid="ignore"):  # an infinite covariance gives NaN: not significant
+        chi2 = chi_square(change, covariance)
+    return bool(np.isfinite(chi2) and chi2 > significance_chi2(len(change)))
 
 
 def _pnp_ransac(X: np.ndarray, x_norm: np.ndarray, threshold: float, iterations: int, seed: int,
