@@ -133,7 +133,7 @@ def _per_image_state(tmp_path, shared: bool, opts: MapperOptions = MapperOptions
 def test_an_image_with_a_camera_of_its_own_registers_with_its_focal_length_estimated(tmp_path):
     """Registered against the initial pair's two-view points, the image's focal length is within
     2% of the truth and its rotation within 0.5 degrees; the guess it started from was 20% off,
-    and registered with it the rotation was 1.9 degrees off (with the exact focal length, 0.2)."""
+    and registered with the guess the rotation misses that bound."""
     state, gt, focal = _per_image_state(tmp_path, shared=False)
     assert register_next(state)
     i = state.last_registered

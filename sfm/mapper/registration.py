@@ -163,8 +163,8 @@ def _significant(change: np.ndarray, covariance: np.ndarray) -> bool:
 def _pnp_ransac(X: np.ndarray, x_norm: np.ndarray, threshold: float, iterations: int, seed: int,
                 local_optimisation: bool = True):
     """OpenCV's USAC PnP RANSAC on normalised coordinates: (ok, rvec, tvec, inliers).  Without
-    ``local_optimisation`` (its inner re-estimation from the inliers, two thirds of its time
-    here) for counting inliers only."""
+    ``local_optimisation`` (its inner re-estimation from the inliers, most of its time) for
+    counting inliers only."""
     usac = cv2.UsacParams()
     if not local_optimisation:
         usac.loMethod = cv2.LOCAL_OPTIM_NULL
