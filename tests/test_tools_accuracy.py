@@ -5,11 +5,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.importorskip("pycolmap")  # the script imports the peer's helpers
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_accuracy import failures, gt_sets, verdict  # noqa: E402
+from bench_accuracy import failures, gt_sets, ordinal, path_order, sparser_set, verdict  # noqa: E402
 
 
 def _row(method: str, registered: str, auc1: float, auc5: float) -> dict:
@@ -62,3 +63,44 @@ def test_the_per_image_run_is_held_to_colmaps_best_without_the_cluster_tolerance
     assert lines[2] == "graphsfm, one camera per image: DOES NOT MEET all images and AUC@1, AUC@5 >= COLMAP's best"
     rows[0] = _row("graphsfm, one camera per image", "10/10", 0.60, 0.92)
     assert verdict(rows, 10)[2].startswith("graphsfm, one camera per image: meets")
+
+
+def test_the_camera_path_is_walked_end_to_end_whatever_the_file_order():
+    # an orbit of 12 views over 300 degrees (a gap where the path ends), listed shuffled
+    angles = np.radians(np.arange(12) * 300.0 / 11)
+    ring = np.stack([np.cos(angles), np.sin(angles), 0.1 * np.ones(12)], axis=1)
+    shuffled = np.random.default_rng(0).permutation(12)
+    order = shuffled[path_order(ring[shuffled])]
+    assert order.tolist() in (list(range(12)), list(range(11, -1, -1)))
+    # a strip: from one end to the other
+    strip = np.stack([np.arange(7.0), np.zeros(7), np.zeros(7)], axis=1)[[3, 0, 6, 1, 5, 2, 4]]
+    assert strip[path_order(strip), 0].tolist() in ([0, 1, 2, 3, 4, 5, 6], [6, 5, 4, 3, 2, 1, 0])
+    assert path_order(np.zeros((0, 3))).tolist() == []
+
+
+def test_a_sparser_set_keeps_every_nth_image_along_the_path_with_its_ground_truth(tmp_path):
+    data = tmp_path / "data"
+    (data / "ring" / "images").mkdir(parents=True)
+    (data / "ring" / "gt").mkdir()
+    # 7 views along x, written in a shuffled order; identity rotations, so the centre is -t
+    lines = ["# IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ\n"]
+    for x in (3, 0, 6, 1, 5, 2, 4):
+        (data / "ring" / "images" / f"v{x}.png").write_bytes(b"png")
+        lines.append(f"v{x}.png 640 480 500 500 319.5 239.5 1 0 0 0 {-x} 0 0\n")
+    (data / "ring" / "gt" / "cameras_gt_opencv.txt").write_text("".join(lines))
+    # the path starts at an end (0 or 6, whose sets are the same when the ends' offsets agree)
+    for start, expected in ((0, [["v0.png", "v3.png", "v6.png"]]), (1, [["v1.png", "v4.png"], ["v2.png", "v5.png"]])):
+        sub = sparser_set(data, "ring", 3, start, tmp_path / "sparser")
+        assert sub == f"ring_every3_from{start + 1}"
+        folder = tmp_path / "sparser" / sub
+        kept = sorted(p.name for p in (folder / "images").iterdir())
+        assert kept in expected
+        assert all((folder / "images" / k).read_bytes() == b"png" for k in kept)
+        table = (folder / "gt" / "cameras_gt_opencv.txt").read_text().splitlines()
+        assert table[0].startswith("#") and sorted(line.split()[0] for line in table[1:]) == kept
+    assert gt_sets(tmp_path / "sparser") == ["ring_every3_from1", "ring_every3_from2"]
+
+
+@pytest.mark.parametrize("n, suffix", [(2, "nd"), (3, "rd"), (4, "th"), (11, "th"), (12, "th"), (21, "st"), (22, "nd")])
+def test_the_ordinal_suffix(n, suffix):
+    assert ordinal(n) == suffix

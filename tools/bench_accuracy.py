@@ -2,6 +2,7 @@
 
     python tools/bench_accuracy.py [--data ../shared/data] [--sets lund_door temple_ring ...]
                                    [--out DIR] [--recording] [--no-colmap-frontend] [--no-per-image]
+                                   [--every N [N ...]]
 
 For every set (default: every folder of ``--data`` with ``images/`` and a pose table
 ``gt/cameras_gt_opencv.txt``), on the same images and evaluated the same way
@@ -30,6 +31,12 @@ over COLMAP's rows, per threshold), and the forced-cluster run against the same 
 Images graphsfm did not register and models it did not merge are listed with the step that
 failed (``unregistered`` and ``warnings`` of ``report.json``).
 
+``--every 2 3`` also runs the main table's methods on sparser versions of each set: every 2nd
+and every 3rd image along the camera path (:func:`path_order`), from each possible first image
+(2 + 3 tables), with the GT poses of those images (``<out>/sparser/<set>_every<N>_from<K>``);
+only for the sets whose every N-th image still makes ``--every-min-images`` images (10).  Fewer, wider-spaced views of the same scene: the condition
+of a narrow-field object ring photographed in fewer steps, which the shared sets do not hold.
+
 A set whose ``gt/`` also holds projection matrices (``*P_matrices.txt``, read by
 :func:`sfm.evaluation.ground_truth.read_projection_matrices`) gets a second table: the same
 models evaluated against them, the same verdict.  Where the pose table was itself made by one of
@@ -51,6 +58,7 @@ import zlib  # noqa: F401 - before pycolmap (pycolmap first breaks later zlib us
 from pathlib import Path
 
 import cv2  # noqa: F401 - same reason
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_frontend import fresh, run_colmap as run_colmap_frontend  # noqa: E402
@@ -72,6 +80,44 @@ TOLERANCE_CLUSTERS = 0.01  # the forced-cluster run may trail COLMAP's best by t
 def gt_sets(data: Path) -> list[str]:
     """Folders of ``data`` with an ``images/`` folder and a GT pose table."""
     return sorted(d.name for d in data.iterdir() if (d / "images").is_dir() and (d / GT_TABLE).exists())
+
+
+def path_order(centers: np.ndarray) -> np.ndarray:
+    """Indices of camera centres (N, 3) in the order of the path that took them: a chain that
+    starts at the centre farthest from their mean and goes on to the nearest centre not yet
+    visited (an orbit or a strip is walked end to end; the file order need not follow it)."""
+    centers = np.asarray(centers, float)
+    left = np.ones(len(centers), dtype=bool)
+    order = [int(np.argmax(np.linalg.norm(centers - centers.mean(axis=0), axis=1)))] if len(centers) else []
+    if order:
+        left[order[0]] = False
+    while left.any():
+        dist = np.linalg.norm(centers - centers[order[-1]], axis=1)
+        dist[~left] = np.inf
+        order.append(int(np.argmin(dist)))
+        left[order[-1]] = False
+    return np.array(order, dtype=np.int64)
+
+
+def sparser_set(data: Path, name: str, every: int, start: int, root: Path) -> str:
+    """A set of every ``every``-th image of ``data/name`` along its camera path
+    (:func:`path_order` of the GT centres), from the one at position ``start`` (0-based),
+    written as ``root/<name>_every<every>_from<start + 1>`` (links to the images, the GT
+    table's lines of those images); its name under ``root``."""
+    gt = read_gt_table(data / name / GT_TABLE)
+    names = sorted(gt)
+    kept = {names[i] for i in path_order(np.stack([gt[n].center for n in names]))[start::every]}
+    sub = f"{name}_every{every}_from{start + 1}"
+    fresh(root / sub)
+    (root / sub / "images").mkdir(parents=True)
+    (root / sub / GT_TABLE.parent).mkdir(parents=True)
+    for image in sorted(kept):
+        (root / sub / "images" / image).parent.mkdir(parents=True, exist_ok=True)
+        (root / sub / "images" / image).symlink_to((data / name / "images" / image).resolve())
+    lines = (data / name / GT_TABLE).read_text(encoding="utf-8").splitlines(keepends=True)
+    (root / sub / GT_TABLE).write_text("".join(
+        line for line in lines if not line.strip() or line.startswith("#") or line.split()[0] in kept), encoding="utf-8")
+    return sub
 
 
 def evaluate_row(method: str, model_dir: Path | None, seconds: float, gt: dict) -> dict:
@@ -216,6 +262,11 @@ def second_opinions(folder: Path, gt: dict, models: list[tuple[str, Path | None]
     return out
 
 
+def ordinal(n: int) -> str:
+    """The English ordinal suffix of ``n`` (2 -> "nd", 11 -> "th")."""
+    return "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
@@ -227,8 +278,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="skip pycolmap's own extraction and matching (its mappers on graphsfm's database only)")
     parser.add_argument("--no-per-image", action="store_true",
                         help="skip the runs with one camera per image")
+    parser.add_argument("--every", type=int, nargs="+", default=[], metavar="N",
+                        help="also every N-th image along each set's camera path, from each of the first N (main table's methods only)")
+    parser.add_argument("--every-min-images", type=int, default=10, metavar="M",
+                        help="--every skips a set whose every N-th image is fewer than M images (default: %(default)s)")
     add_page_arguments(parser)
     args = parser.parse_args(argv)
+    if any(n < 2 for n in args.every):
+        parser.error("--every takes integers of at least 2")
     logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
     import os
 
@@ -254,6 +311,19 @@ def main(argv: list[str] | None = None) -> int:
         sections.append(text)
         (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes, "other_gt": others,
                                                           "per_image": per_image}, indent=1))
+        num_images = len(read_gt_table(args.data / name / GT_TABLE))
+        for every, start in ((every, start) for every in args.every for start in range(every)
+                             if num_images // every >= args.every_min_images):
+            sub = sparser_set(args.data, name, every, start, out / "sparser")
+            rows, notes, _ = bench_set(out / "sparser", sub, out / "sparser_runs", threads, args.recording,
+                                       not args.no_colmap_frontend, context)
+            count = len(read_gt_table(out / "sparser" / sub / GT_TABLE))
+            text = (f"#### {name}, every {every}{ordinal(every)} image along the camera path from the "
+                    f"{start + 1}{ordinal(start + 1)} ({count} images)\n\n"
+                    f"{markdown_table(rows)}\n\n" + "\n".join(f"- {n}" for n in notes))
+            print(text + "\n", flush=True)
+            sections.append(text)
+            (out / "sparser_runs" / sub / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes}, indent=1))
     intro = ("graphsfm (defaults; and with forced clusters) and pycolmap's mappers on the same images, "
              "evaluated by `sfm.evaluation.metrics.evaluate` (largest model; rotation error after Sim3 "
              "alignment; relative-pose AUC). Times: graphsfm's default row the whole run (extract to final "
@@ -261,7 +331,8 @@ def main(argv: list[str] | None = None) -> int:
              "graphsfm's database the mapper alone, the `extract+match` rows pycolmap's front end + mapper. "
              "The tables 'one camera per image' repeat graphsfm's run with `--camera-mode per-image` "
              "(internet photos' conditions: each image's intrinsics estimated on their own) and COLMAP's "
-             "mappers on its database; the acceptance verdicts are the main tables'.")
+             "mappers on its database; the acceptance verdicts are the main tables'. The tables 'every N-th image "
+             "along the camera path' (`--every`) run the main table's methods on a sparser version of the set.")
     publish(args, "accuracy", "Pose accuracy on the photo sets with ground truth", intro + "\n\n" + "\n\n".join(sections))
     return 0
 
