@@ -341,9 +341,12 @@ def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array
     the free components (the held ones conditioned on, their rows zero) the Gauss-Newton step
     ``Lambda^-1 eta`` and the covariance ``Lambda^-1`` times the a-posteriori variance factor
     ``s0^2 = sum of squared whitened residuals / redundancy`` (the photogrammetric estimate of the
-    observations' variance, of which their sigmas are only relative weights).  At a BA's optimum
-    with some components held, the step is where freeing them would move them to first order,
-    and the covariance how well the data determine them.  A Cal3Bundler group's (f, k1, k2)
+    observations' variance, of which their sigmas are only relative weights), the residuals
+    taken at the optimum the step predicts (the linearised cost with every pose and point at its
+    optimum and the free components moved by the step), not at the given values: a state short
+    of convergence (a growing model before its final BA) would otherwise inflate the covariance
+    by its excess cost.  At a BA's optimum with some components held, the step is where freeing
+    them would move them to first order, and the covariance how well the data determine them.  A Cal3Bundler group's (f, k1, k2)
     fill [fx and fy, k1, k2].  None for groups not refined or without observations, and for
     every group when the system is singular."""
     built = _build(problem, options)
@@ -378,9 +381,15 @@ def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array
         return out
     if redundancy <= 0 or not np.all(np.isfinite(inverse)):
         return out
-    variance_factor = 2.0 * graph.error(values) / redundancy
     step, cov = np.zeros(offsets[-1]), np.zeros((offsets[-1], offsets[-1]))
     step[free] = inverse @ np.asarray(eta, float).ravel()[free]
+    # The residual at the optimum the step predicts: the eliminated poses and points take
+    # their optimal values for any calibration, so the reduced graph's error at the step is
+    # the whole linearised cost there.
+    at_step = gtsam.VectorValues()
+    for key, o, n in zip(keys, offsets[:-1], sizes):
+        at_step.insert(key, step[o:o + n])
+    variance_factor = 2.0 * max(rest.error(at_step), 0.0) / redundancy
     cov[np.ix_(free, free)] = inverse * variance_factor
     for g, o, n in zip(refined, offsets[:-1], sizes):
         g_step, g_cov = step[o:o + n], cov[o:o + n, o:o + n]

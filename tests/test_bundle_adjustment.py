@@ -17,7 +17,7 @@ from _helpers_bundle_adjustment import observe, perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
 from backend.ba_problem import BAOptions, BAProblem
-from backend.bundle_adjustment import bundle_adjust, cam_from_world_from_pose3, pose3_from_cam_from_world
+from backend.bundle_adjustment import bundle_adjust, calibration_step, cam_from_world_from_pose3, pose3_from_cam_from_world
 from backend.camera_models import ds2_from_params, project
 
 # a longer focal length: with 500 points and 0.5 px noise, pose and focal noise floors are
@@ -361,3 +361,26 @@ def test_observation_sigmas_weigh_the_observations():
     assert weighted.final_rms > plain.final_rms  # the weighted fit trades pixels for likelihood
     with pytest.raises(ValueError, match="obs_sigma"):
         bundle_adjust(BAProblem(**start, obs_sigma=np.zeros(len(sigma))), options=options)
+
+
+def test_the_calibration_steps_covariance_is_the_optimums_also_from_a_state_short_of_it():
+    """``calibration_step`` scales its covariance by the residuals at the optimum its step
+    predicts.  From the BA's optimum (principal point held) and from that state with every point
+    moved by ~1.7 px (twelve times the optimum's cost) the principal point's standard deviations
+    agree to 2% (the cost at the given values would make them 3.5 times larger), and the
+    estimate plus the step lands on the same principal point within its uncertainty."""
+    sigma = 0.5
+    truth = ring_scene(noise=sigma, seed=5)
+    held = bundle_adjust(BAProblem(**perturb(truth)), options=replace(EXACT, refine_intrinsics="focal_radial"))
+    optimum = replace(BAProblem(**truth), camera_params=held.camera_params, rotations=held.rotations,
+                      translations=held.translations, points=held.points)
+    rng = np.random.default_rng(2)
+    short = replace(optimum, points=optimum.points + rng.normal(0.0, 0.02, optimum.points.shape))
+    cost = [np.mean(p.reprojection_errors() ** 2) for p in (optimum, short)]
+    assert cost[1] > 10 * cost[0]
+    options = replace(EXACT, refine_intrinsics="all")
+    [(step_opt, cov_opt)], [(step_short, cov_short)] = calibration_step(optimum, options), calibration_step(short, options)
+    std_opt, std_short = np.sqrt(np.diag(cov_opt)[[3, 4]]), np.sqrt(np.diag(cov_short)[[3, 4]])
+    np.testing.assert_allclose(std_short, std_opt, rtol=0.02)  # the given values' cost: 3.5 times
+    start = ds2_from_params("SIMPLE_RADIAL", held.camera_params[0])
+    np.testing.assert_allclose((start + step_short)[[3, 4]], (start + step_opt)[[3, 4]], atol=std_opt.max())

@@ -101,9 +101,33 @@ def test_a_shift_is_kept_only_when_the_halves_reproduce_it(shift_a, shift_b, acc
     test = confirm_by_halves(screened, NOMINAL, _halves(shift_a, shift_b))
     assert test.accepted == accepted
     assert test.halves_chi2 == pytest.approx(halves_chi2, rel=1e-9)
-    assert f"chi2 {mean_chi2:.1f} of the halves' mean shift" in test.reason
+    assert f"chi2 {mean_chi2:.1f} of the halves' weighted mean shift" in test.reason
     assert test.reason.startswith("significant, determinable and reproducible" if accepted else "not reproducible")
     np.testing.assert_allclose(test.halves_shift, [shift_a, shift_b])
+
+
+def test_a_half_that_sees_the_principal_point_poorly_counts_for_little():
+    """One half determines the shift to 1 px, the other to 8 px (the end of an orbit whose
+    views, without the rest of the ring, trade the principal point for their rotations).  Their
+    difference (8, -7) is within the pooled covariance (chi2 113 / 65, no widening), so they
+    agree; the weighted mean (5.88, -3.89) with covariance I / (1 + 1/64) is significant
+    (chi2 50.5), where the plain mean (2, 0.5) with (I + 64 I) / 4 would not be (chi2 0.26)."""
+    estimate = NOMINAL.copy()
+    estimate[[3, 4]] += (5.0, -3.0)
+    screened = check_principal_point(NOMINAL, estimate, _covariance(1.0), FREE)
+    a, b = NOMINAL.copy(), NOMINAL.copy()
+    a[[3, 4]] += (6.0, -4.0)
+    b[[3, 4]] += (-2.0, 3.0)
+    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (b, _covariance(8.0))))
+    assert test.accepted
+    assert test.halves_chi2 == pytest.approx(113.0 / 65.0, rel=1e-9)
+    weight = 1.0 / (1.0 + 1.0 / 64.0)
+    mean = weight * (np.array([6.0, -4.0]) + np.array([-2.0, 3.0]) / 64.0)
+    assert f"chi2 {mean @ mean / weight:.1f} of the halves' weighted mean shift" in test.reason
+    assert mean @ mean / weight == pytest.approx(50.46, abs=0.01)
+    # the same halves, the weak one showing the opposite shift precisely: they disagree and are held
+    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (NOMINAL - a + NOMINAL, _covariance(1.0))))
+    assert not test.accepted and test.reason.startswith("not reproducible")
 
 
 def test_without_both_halves_the_nominal_value_is_held():

@@ -22,10 +22,12 @@ a split-sample check:
 - reproducible: the two halves of the camera's images on either side of the median of their
   centres along the centres' principal axis (:func:`split_halves`), each bundle-adjusted on its
   own with the principal point free, give a significant shift from their own estimates
-  (:func:`confirm_by_halves`): the mean of the two, with the covariance of a mean of two
-  independent estimates, widened by the Birge ratio of metrology where they disagree more than
-  their covariances say (``d^T (C_a + C_b)^-1 d / 2`` for the difference ``d``, 1 on average
-  when the covariances are right).  This is split-sample validation: the principal point is one
+  (:func:`confirm_by_halves`): their weighted mean (the minimum-variance combination of two
+  independent estimates, each weighed by its inverse covariance, so a half that sees the
+  principal point poorly counts for little), with its covariance widened by the Birge ratio of
+  metrology where they disagree more than their covariances say (``d^T (C_a + C_b)^-1 d`` for
+  the difference ``d``, the chi-square of the two about their weighted mean, over its 2
+  degrees of freedom: 1 on average when the covariances are right).  This is split-sample validation: the principal point is one
   constant of the camera, so independent photos of it must give the same value.  A shift that is
   instead lens or sensor error the camera model lacks (decentering distortion, a sensor not
   parallel to the lens, rolling shutter), which the covariance cannot see because it knows only
@@ -125,11 +127,12 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
                       halves: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None) -> PrincipalPointTest:
     """``test`` (accepted by :func:`check_principal_point`) completed by the split-sample step:
     ``halves`` the two halves' (Cal3DS2 estimate, (9, 9) covariance), None when they could not be
-    estimated (too few images, a singular system).  Refined only if the halves' mean shift from
-    the nominal value, ``m = (p_a + p_b) / 2``, is significant with the covariance of a mean of
-    two independent estimates, ``(C_a + C_b) / 4``, times the squared Birge ratio
+    estimated (too few images, a singular system).  Refined only if the halves' weighted mean
+    shift from the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with
+    ``C_m = (C_a^-1 + C_b^-1)^-1``, is significant with ``C_m`` times the squared Birge ratio
     ``max(1, d^T (C_a + C_b)^-1 d / 2)`` of their difference ``d = p_a - p_b``:
-    ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`."""
+    ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`.  Halves of equal covariance give the plain
+    mean with ``C_m = C_a / 2``."""
     if halves is None:
         return replace(test, accepted=False, reason=f"halves not estimable (fewer than {MIN_HALF_IMAGES} images each, "
                                                     "or singular)")
@@ -142,10 +145,16 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     shifts = (tuple(pa - nominal), tuple(pb - nominal))
     if not np.isfinite(chi2):
         return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
-    mean = (pa + pb) / 2.0 - nominal
-    widened = float(mean @ np.linalg.solve(pooled / 4.0 * max(1.0, chi2 / 2.0), mean))
+    try:
+        info_a = np.linalg.inv(np.asarray(cov_a, float)[np.ix_(PP, PP)])
+        info_b = np.linalg.inv(np.asarray(cov_b, float)[np.ix_(PP, PP)])
+        cov_mean = np.linalg.inv(info_a + info_b)
+    except np.linalg.LinAlgError:
+        return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
+    mean = cov_mean @ (info_a @ pa + info_b @ pb) - nominal
+    widened = float(mean @ np.linalg.solve(cov_mean * max(1.0, chi2 / 2.0), mean))
     if widened <= SIGNIFICANCE_CHI2:
         return replace(test, accepted=False, halves_shift=shifts, halves_chi2=chi2,
-                       reason=f"not reproducible: chi2 {widened:.1f} of the halves' mean shift with their spread")
+                       reason=f"not reproducible: chi2 {widened:.1f} of the halves' weighted mean shift with their spread")
     return replace(test, halves_shift=shifts, halves_chi2=chi2,
-                   reason=f"significant, determinable and reproducible: chi2 {widened:.1f} of the halves' mean shift")
+                   reason=f"significant, determinable and reproducible: chi2 {widened:.1f} of the halves' weighted mean shift")
