@@ -24,7 +24,7 @@ def test_lund_door_single_cluster(shared_data, tmp_path):
     models, report, result = _run(shared_data, tmp_path, "lund_door")
     assert len(models) == 1 and result.num_registered == 12
     assert result.median_rotation_error_deg <= 0.02
-    assert result.auc[1] >= 0.97  # 0.975 measured (largest-scale features; 0.959 before)
+    assert result.auc[1] >= 0.97
     assert report["mean_reprojection_error_px"] <= 0.6
 
 
@@ -32,19 +32,32 @@ def test_lund_door_two_clusters(shared_data, tmp_path):
     models, report, result = _run(shared_data, tmp_path, "lund_door", max_cluster_size=5)
     assert report["num_clusters"] >= 2 and len(models) == 1
     assert result.num_registered == 12
-    assert result.auc[1] >= 0.95
+    assert result.auc[1] >= 0.97
 
 
 def test_temple_ring_default_intrinsics(shared_data, tmp_path):
+    """The principal point, 18 px off the image centre, is found (``intrinsics_refinement``
+    "auto"): held at the centre, as COLMAP holds it, AUC@1 falls to about a quarter."""
     models, _, result = _run(shared_data, tmp_path, "temple_ring")
     assert len(models[0].images) == 47
-    assert result.auc[5] >= 0.80
+    assert result.auc[1] >= 0.78 and result.auc[5] >= 0.95
+    [camera] = models[0].cameras.values()
+    assert abs(camera.params[1] - 302.3) < 3.0 and abs(camera.params[2] - 246.9) < 3.0  # the GT's
+
+
+def test_herzjesu_p8_default(shared_data, tmp_path):
+    """Strecha's LIDAR-registered ground truth: one camera whose principal point is ~15 px off
+    the image centre."""
+    models, _, result = _run(shared_data, tmp_path, "herzjesu_p8")
+    assert len(models) == 1 and result.num_registered == 8
+    assert result.auc[1] >= 0.92 and result.auc[5] >= 0.98
+    assert result.median_rotation_error_deg <= 0.05
 
 
 def test_temple_ring_three_clusters(shared_data, tmp_path):
     models, report, result = _run(shared_data, tmp_path, "temple_ring", max_cluster_size=15)
     assert report["num_clusters"] >= 3 and len(models[0].images) == 47
-    assert result.auc[5] >= 0.78
+    assert result.auc[1] >= 0.77 and result.auc[5] >= 0.95
 
 
 def test_sacre_coeur_clusters_keep_a_bound_of_4(shared_data, tmp_path):
