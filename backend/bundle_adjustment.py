@@ -346,8 +346,8 @@ def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array
     optimum and the free components moved by the step), not at the given values: a state short
     of convergence (a growing model before its final BA) would otherwise inflate the covariance
     by its excess cost.  At a BA's optimum with some components held, the step is where freeing
-    them would move them to first order, and the covariance how well the data determine them.  A Cal3Bundler group's (f, k1, k2)
-    fill [fx and fy, k1, k2].  None for groups not refined or without observations, and for
+    them would move them to first order, and the covariance how well the data determine them.
+    A Cal3Bundler group's (f, k1, k2) fill [fx and fy, k1, k2].  None for groups not refined or without observations, and for
     every group when the system is singular."""
     built = _build(problem, options)
     graph, values, levels, refined, cameras = built.graph, built.values, built.levels, built.refined, built.cameras

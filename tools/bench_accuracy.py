@@ -34,8 +34,9 @@ failed (``unregistered`` and ``warnings`` of ``report.json``).
 ``--every 2 3`` also runs the main table's methods on sparser versions of each set: every 2nd
 and every 3rd image along the camera path (:func:`path_order`), from each possible first image
 (2 + 3 tables), with the GT poses of those images (``<out>/sparser/<set>_every<N>_from<K>``);
-only for the sets whose every N-th image still makes ``--every-min-images`` images (10).  Fewer, wider-spaced views of the same scene: the condition
-of a narrow-field object ring photographed in fewer steps, which the shared sets do not hold.
+only for the sets whose every N-th image still makes ``--every-min-images`` images (10).
+Fewer, wider-spaced views of the same scene: the condition of a narrow-field object ring
+photographed in fewer steps, which the shared sets do not hold.
 
 A set whose ``gt/`` also holds projection matrices (``*P_matrices.txt``, read by
 :func:`sfm.evaluation.ground_truth.read_projection_matrices`) gets a second table: the same
@@ -279,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-per-image", action="store_true",
                         help="skip the runs with one camera per image")
     parser.add_argument("--every", type=int, nargs="+", default=[], metavar="N",
-                        help="also every N-th image along each set's camera path, from each of the first N (main table's methods only)")
+                        help="also every N-th image along each set's camera path, from each of the first N "
+                        "(main table's methods only)")
     parser.add_argument("--every-min-images", type=int, default=10, metavar="M",
                         help="--every skips a set whose every N-th image is fewer than M images (default: %(default)s)")
     add_page_arguments(parser)

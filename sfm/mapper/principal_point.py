@@ -27,12 +27,15 @@ a split-sample check:
   principal point poorly counts for little), with its covariance widened by the Birge ratio of
   metrology where they disagree more than their covariances say (``d^T (C_a + C_b)^-1 d`` for
   the difference ``d``, the chi-square of the two about their weighted mean, over its 2
-  degrees of freedom: 1 on average when the covariances are right).  This is split-sample validation: the principal point is one
-  constant of the camera, so independent photos of it must give the same value.  A shift that is
-  instead lens or sensor error the camera model lacks (decentering distortion, a sensor not
-  parallel to the lens, rolling shutter), which the covariance cannot see because it knows only
-  the modelled parameters, shows up as estimates that depend on where the photos were taken
-  from, and the widened uncertainty swallows it.
+  degrees of freedom: 1 on average when the covariances are right).  This is split-sample
+  validation: the principal point is one constant of the camera, so independent photos of it
+  must give the same value.  A shift that is instead lens or sensor error the camera model
+  lacks (decentering distortion, a sensor not parallel to the lens, rolling shutter), which the
+  covariance cannot see because it knows only the modelled parameters, shows up as estimates
+  that depend on where the photos were taken from, and the widened uncertainty swallows it.
+  The price: where each half alone sees the principal point poorly (an object ring photographed
+  in few, wide steps, whose halves lose the ring's closure), the halves cannot confirm it and
+  the camera keeps its nominal value.
 
 A camera that fails keeps its nominal principal point in that final BA.
 Nothing here depends on the scene: the test reads only the camera's estimates and their
