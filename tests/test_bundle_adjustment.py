@@ -367,8 +367,9 @@ def test_the_calibration_steps_covariance_is_the_optimums_also_from_a_state_shor
     """``calibration_step`` scales its covariance by the residuals at the optimum its step
     predicts.  From the BA's optimum (principal point held) and from that state with every point
     moved by ~1.7 px (twelve times the optimum's cost) the principal point's standard deviations
-    agree to 2% (the cost at the given values would make them 3.5 times larger), and the
-    estimate plus the step lands on the same principal point within its uncertainty."""
+    agree to 2% (the cost at the given values would make them larger by the square root of the
+    cost ratio), and the estimate plus the step lands on the same principal point within its
+    uncertainty."""
     sigma = 0.5
     truth = ring_scene(noise=sigma, seed=5)
     held = bundle_adjust(BAProblem(**perturb(truth)), options=replace(EXACT, refine_intrinsics="focal_radial"))
@@ -381,6 +382,6 @@ def test_the_calibration_steps_covariance_is_the_optimums_also_from_a_state_shor
     options = replace(EXACT, refine_intrinsics="all")
     [(step_opt, cov_opt)], [(step_short, cov_short)] = calibration_step(optimum, options), calibration_step(short, options)
     std_opt, std_short = np.sqrt(np.diag(cov_opt)[[3, 4]]), np.sqrt(np.diag(cov_short)[[3, 4]])
-    np.testing.assert_allclose(std_short, std_opt, rtol=0.02)  # the given values' cost: 3.5 times
+    np.testing.assert_allclose(std_short, std_opt, rtol=0.02)
     start = ds2_from_params("SIMPLE_RADIAL", held.camera_params[0])
     np.testing.assert_allclose((start + step_short)[[3, 4]], (start + step_opt)[[3, 4]], atol=std_opt.max())

@@ -314,12 +314,11 @@ def main(argv: list[str] | None = None) -> int:
         (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes, "other_gt": others,
                                                           "per_image": per_image}, indent=1))
         num_images = len(read_gt_table(args.data / name / GT_TABLE))
-        for every, start in ((every, start) for every in args.every for start in range(every)
-                             if num_images // every >= args.every_min_images):
+        for every, start in [(n, k) for n in args.every if num_images // n >= args.every_min_images for k in range(n)]:
             sub = sparser_set(args.data, name, every, start, out / "sparser")
             rows, notes, _ = bench_set(out / "sparser", sub, out / "sparser_runs", threads, args.recording,
                                        not args.no_colmap_frontend, context)
-            count = len(read_gt_table(out / "sparser" / sub / GT_TABLE))
+            count = len(range(start, num_images, every))
             text = (f"#### {name}, every {every}{ordinal(every)} image along the camera path from the "
                     f"{start + 1}{ordinal(start + 1)} ({count} images)\n\n"
                     f"{markdown_table(rows)}\n\n" + "\n".join(f"- {n}" for n in notes))
