@@ -20,8 +20,11 @@ import sfm
 import sfm.cli as cli
 from sfm.core import progress
 from sfm.io.database import Database
+from sfm.io.database_schema import TwoViewGeometry
 from sfm.io.report import SCHEMA, check_report
 from sfm.io.workspace import read_json
+from sfm.mapper.growth import Growth, ModelGrowth
+from sfm.stages.map import several_models_warning
 from sfm.stages.synth import run_synth
 from sfm.synthetic.options import SynthOptions
 
@@ -30,7 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def one_cluster(tmp_path_factory):
-    """16 images in one cluster, plus an image without keypoints and one without any pair."""
+    """16 images in one cluster, plus an image without keypoints, one without any pair, and one
+    whose only pair (20 inliers, with the first image) shows it too few of the model's points
+    for PnP."""
     ws = tmp_path_factory.mktemp("one")
     run_synth(ws, SynthOptions(num_images=16, observations_per_image=400, seed=2))
     with Database(ws / "database.db") as db:
@@ -38,6 +43,11 @@ def one_cluster(tmp_path_factory):
         db.add_image("zz_blank.jpg", camera)
         lonely = db.add_image("zz_lonely.jpg", camera)
         db.write_keypoints(lonely, np.random.default_rng(0).uniform(0, 500, (50, 2)))
+        first = min(db.read_images())
+        weak = db.add_image("zz_weak.jpg", camera)
+        db.write_keypoints(weak, db.read_keypoints(first)[:20, :2])
+        pairs = np.stack([np.arange(20), np.arange(20)], axis=1)
+        db.write_two_view_geometry(first, weak, TwoViewGeometry(2, pairs))
     assert cli.main(["reconstruct", "--workspace", str(ws), "--no-recording", "--workers", "1", "-v"]) == 0
     return ws
 
@@ -86,9 +96,14 @@ def test_one_schema_for_one_cluster_and_several(one_cluster, clusters):
 
 def test_images_left_unregistered_are_listed_with_the_reason(one_cluster):
     report = read_json(one_cluster / "report.json")
-    assert report["images"] == 18 and report["registered"] == 16
-    assert report["unregistered"] == [{"name": "zz_blank.jpg", "reason": "no keypoints"},
-                                      {"name": "zz_lonely.jpg", "reason": "no verified pair with another image"}]
+    assert report["images"] == 19 and report["registered"] == 16
+    assert report["unregistered"][:2] == [{"name": "zz_blank.jpg", "reason": "no keypoints"},
+                                          {"name": "zz_lonely.jpg", "reason": "no verified pair with another image"}]
+    weak = report["unregistered"][2]
+    seen = re.fullmatch(r"sees (\d+) points of the model, fewer than the 30 registration needs", weak["reason"])
+    assert weak["name"] == "zz_weak.jpg" and seen and 10 <= int(seen.group(1)) <= 20, weak
+    assert len(report["unregistered"]) == 3
+    assert report["clusters"][0]["left_out"] == {"zz_weak.jpg": weak["reason"]}
     assert report["keypoints_per_image"]["min"] == 0
 
 
@@ -166,3 +181,31 @@ def test_warnings_go_to_the_log_not_to_stderr(tmp_path):
     assert proc.returncode == 0 and proc.stderr == ""
     log = (tmp_path / "log.txt").read_text()
     assert "RuntimeWarning: overflow encountered" in log and "UserWarning: a library warning" in log
+
+
+def test_why_an_image_is_not_in_the_largest_model():
+    """Per image, the reason the cluster's largest kept model gave when it closed; an image only
+    a dropped (too small) model took says so; no model at all: no initial pair."""
+    names = ["a", "b", "c", "d", "e", "f"]
+    small = ModelGrowth(rank=1, size=2, registered=np.array([0, 1]), left_out={"c": "x", "d": "x", "e": "x", "f": "x"})
+    dropped = ModelGrowth(rank=-1, size=1, registered=np.array([5]))
+    largest = ModelGrowth(rank=0, size=3, registered=np.array([2, 3, 4]),
+                          left_out={"a": "registered in an earlier model", "b": "registered in an earlier model",
+                                    "f": "sees 4 points of the model, fewer than the 30 registration needs"})
+    growth = Growth("C3", names, 0, models=[small, largest, dropped], min_size=2)
+    assert growth.left_out() == {
+        "a": "registered in an earlier model", "b": "registered in an earlier model",
+        "f": "registered only in a model of 1 images, fewer than the 2 a kept model needs"}
+    assert Growth("C3", names, 0).left_out() == dict.fromkeys(names, "no initial pair could be reconstructed")
+
+
+def test_several_models_say_why_the_others_images_are_not_in_the_largest():
+    left_out = {f"im{k}.jpg": f"reason {k}" for k in range(5)}
+    assert several_models_warning([20, 3], [{"im1.jpg", "im0.jpg"}], left_out) == (
+        "2 models: the images did not form one connected reconstruction (sizes 20, 3); "
+        "not in the largest: im0.jpg (reason 0), im1.jpg (reason 1)")
+    assert several_models_warning([9, 3, 2], [{"im2.jpg", "im3.jpg", "im4.jpg"}, {"im0.jpg", "im1.jpg"}], left_out) == (
+        "3 models: the images did not form one connected reconstruction (sizes 9, 3, 2); not in the largest: "
+        "im0.jpg (reason 0), im1.jpg (reason 1), im2.jpg (reason 2) and 2 more")
+    assert several_models_warning([4, 4], [{"zz.jpg"}], {}) == (
+        "2 models: the images did not form one connected reconstruction (sizes 4, 4)")

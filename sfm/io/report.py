@@ -45,7 +45,7 @@ SCHEMA: dict[str, tuple[tuple[type, ...], str]] = {
     "median_inliers": ((int, float), "median inlier matches of the verified pairs"),
     "num_clusters": ((int,), "clusters of the image graph (1: no clustering)"),
     "clusters": ((list,), "per cluster: cluster, images, worker, models (path, registered, points, ...), "
-                          "error, reused"),
+                          "error, reused, left_out (image -> why its largest model left it out)"),
     "failed_clusters": ((list,), "labels of the clusters whose local SfM failed"),
     "num_local_models": ((int,), "models made by the clusters' local SfM"),
     "merged": ((bool,), "whether local models were merged (false with one cluster)"),
@@ -169,10 +169,12 @@ def check_report(report: dict) -> list[str]:
     return problems
 
 
-def model_facts(workspace: Path, final_names: list[set[str]]) -> dict:
+def model_facts(workspace: Path, final_names: list[set[str]], clusters: list[dict] | None = None) -> dict:
     """The report's counts from the database and the final models (the registered image names
     of each, largest first): keypoints per image, pairs, and the images no final model holds,
-    each with the reason (no keypoints, no verified pair, its cluster failed, not registered)."""
+    each with the reason (no keypoints, no verified pair, its cluster failed, or why each
+    cluster's largest model left it out: the map stage's ``left_out`` of ``clusters``, the
+    report's when not given)."""
     from sfm.io.database import Database
 
     workspace = Path(workspace)
@@ -190,14 +192,19 @@ def model_facts(workspace: Path, final_names: list[set[str]]) -> dict:
     with_pair = {names[int(i)] for i in id1} | {names[int(i)] for i in id2}
     failed: dict[str, str] = {}
     clusters_path = workspace / CLUSTERS
-    report = read_report(workspace)
-    errors = {c["cluster"]: c.get("error") for c in report["clusters"] if c.get("error")}
+    if clusters is None:
+        clusters = read_report(workspace)["clusters"]
+    errors = {c["cluster"]: c.get("error") for c in clusters if c.get("error")}
     if clusters_path.exists() and errors:
         for k, c in enumerate(read_json(clusters_path)["clusters"]):
             label = f"C{c.get('id', k)}"
             if label in errors:
                 for name in c["members"]:
                     failed.setdefault(name, f"its cluster {label} failed: {errors[label]}")
+    left_out: dict[str, list[str]] = {}
+    for c in clusters:
+        for name, reason in (c.get("left_out") or {}).items():
+            left_out.setdefault(name, []).append(reason if len(clusters) == 1 else f"{c['cluster']}: {reason}")
     registered = set().union(*final_names) if final_names else set()
     unregistered = []
     for image_id, name in sorted(names.items(), key=lambda kv: kv[1]):
@@ -209,6 +216,8 @@ def model_facts(workspace: Path, final_names: list[set[str]]) -> dict:
             reason = "no verified pair with another image"
         elif name in failed:
             reason = failed[name]
+        elif name in left_out:
+            reason = "; ".join(left_out[name])
         else:
             reason = "no model registered it (too few verified matches to the registered images for a pose)"
         unregistered.append({"name": name, "reason": reason})

@@ -12,8 +12,10 @@ once shown, stays in the sample while it exists); the poses of all registered im
 every global bundle adjustment moves) only while the model has at most
 :data:`ALL_POSES_UP_TO` images and then whenever it has grown by :data:`ALL_POSES_GROWTH`, and
 after the final refinement: O(n log n) poses for a model of n images, not O(n^2).
-Per model it also keeps, for each image the model left out, why, and what its final bundle
-adjustments refined of each camera.
+With ``max_points`` 0 (no recording) it keeps no steps at all.  Per model it also keeps, for
+each image the model left out, why, and what its final bundle adjustments refined of each
+camera: :meth:`Growth.left_out` says why each image is not in the cluster's largest model, for
+the run's report as for the recording.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ class ModelGrowth:
     rank: int = -1
     size: int = 0
     left_out: dict[str, str] = field(default_factory=dict)
-    registered: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # at the last step
+    registered: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # when it closed
     all_posed_at: int = 0  # images when the poses of all were last kept
     calibration: list[str] = field(default_factory=list)
 
@@ -68,12 +70,15 @@ class ModelGrowth:
 @dataclass
 class Growth:
     """Every model attempt of one cluster, with the cluster's image names and cameras (each
-    image's calibration matrix and size, as the last finished model refined them)."""
+    image's calibration matrix and size, as the last finished model refined them).  With
+    ``max_points`` 0 no step is kept: only what each model left out and why, and its
+    calibration."""
 
     label: str
     names: list[str]
     max_points: int
     models: list[ModelGrowth] = field(default_factory=list)
+    min_size: int = 2  # the fewest images of a kept model (set by finish)
     K: np.ndarray | None = None  # (n, 3, 3): each image's calibration, set when a model closes
     sizes: np.ndarray | None = None  # (n, 2) width, height
     _track_rgb: np.ndarray | None = None
@@ -83,6 +88,8 @@ class Growth:
         """A step of the current model (a new model starts when the previous one was closed)."""
         if not self.models or self.models[-1].size:
             self.models.append(ModelGrowth())
+        if self.max_points <= 0:
+            return
         if self._track_rgb is None:
             rows = np.arange(len(state.obs_image))  # grouped by track
             self._track_rgb = mean_colors(state, rows, state.starts)
@@ -100,7 +107,6 @@ class Growth:
             posed = reg
         else:
             posed = np.array(sorted(new), dtype=np.int64)
-        model.registered = reg
         self.models[-1].steps.append(GrowthStep(
             num_registered=n, new=[int(i) for i in new], posed=posed, rotations=state.R[posed].astype(np.float32),
             translations=state.t[posed].astype(np.float32), ba_rms_px=float(ba_rms_px),
@@ -114,6 +120,7 @@ class Growth:
             return
         model = self.models[-1]
         model.size = int(state.num_registered)
+        model.registered = np.flatnonzero(state.registered)
         model.calibration = list(calibration)
         self._cameras(state)
         for i in np.flatnonzero(~state.registered):
@@ -122,9 +129,27 @@ class Growth:
     def finish(self, min_size: int) -> None:
         """Rank the kept models as :func:`reconstruct_incremental` sorts them (largest first,
         stable); attempts below ``min_size`` images stay at rank -1."""
+        self.min_size = min_size
         kept = [k for k, m in enumerate(self.models) if m.size >= min_size]
         for rank, k in enumerate(sorted(kept, key=lambda k: -self.models[k].size)):
             self.models[k].rank = rank
+
+    def left_out(self) -> dict[str, str]:
+        """Why each image of the cluster is not in its largest kept model (image name ->
+        reason, in words): the reason that model gave when it closed, or the model of fewer
+        than ``min_size`` images that took the image and was dropped, or that no initial
+        pair could be reconstructed."""
+        kept = [m for m in self.models if m.rank >= 0]
+        largest = min(kept, key=lambda m: m.rank) if kept else None
+        reasons = dict(largest.left_out) if largest is not None else {}
+        for m in self.models:
+            if m.rank < 0 and m.size:
+                for i in m.registered.tolist():
+                    reasons[self.names[i]] = (f"registered only in a model of {m.size} images, fewer than the "
+                                              f"{self.min_size} a kept model needs")
+        held = set() if largest is None else {self.names[i] for i in largest.registered.tolist()}
+        return {name: reasons.get(name, "no initial pair could be reconstructed")
+                for name in self.names if name not in held}
 
     def _cameras(self, state: MapperState) -> None:
         n = len(self.names)
@@ -146,8 +171,8 @@ def left_out_reason(state: MapperState, i: int) -> str:
         return f"no pair with {opts.min_num_matches}+ verified inliers inside the cluster"
     visible = len(state.visible_points(i)[0])
     if state.failed[i]:
-        return (f"PnP RANSAC failed {state.failed[i]} time(s) (last with {state.fail_visible[i]} model points "
-                f"in view; needs {opts.abs_pose_min_num_inliers} inliers, {opts.abs_pose_min_inlier_ratio:.0%} of them)")
+        return (f"PnP RANSAC failed {state.failed[i]} time(s), the last with {state.fail_visible[i]} model points "
+                f"in view (it needs {opts.abs_pose_min_num_inliers} inliers, {opts.abs_pose_min_inlier_ratio:.0%} of them)")
     if visible < opts.abs_pose_min_num_inliers:
-        return f"sees {visible} points of the model; registration needs {opts.abs_pose_min_num_inliers}"
+        return f"sees {visible} points of the model, fewer than the {opts.abs_pose_min_num_inliers} registration needs"
     return "dropped: its camera's intrinsics became degenerate, or the model stopped before reaching it"

@@ -121,7 +121,7 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         written = write_models(models, _folder(workspace, direct, label), registrations)
         model_names.update({w["path"]: {im.name for im in m.images.values()} for w, m in zip(written, models)})
         per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
-                          "models": written, "error": res.error}
+                          "models": written, "error": res.error, "left_out": growth.left_out() if growth else {}}
         if res.error is None:  # a failed cluster is tried again by the next run
             ledger.data["map"]["clusters"][label] = per_cluster[k]
             ledger.save()
@@ -142,10 +142,11 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     if direct:
         flat.sort(key=lambda m: -m["registered"])
         fields.update(models_fields(flat), merged=False, merge_components=0)
-        fields.update(model_facts(workspace, [model_names.get(m["path"]) or registered_names(Path(m["path"])) for m in flat]))
+        final_names = [model_names.get(m["path"]) or registered_names(Path(m["path"])) for m in flat]
+        fields.update(model_facts(workspace, final_names, per_cluster))
         if len(flat) > 1:
-            sizes = ", ".join(str(m["registered"]) for m in flat)
-            fields["warnings"] = [f"{len(flat)} models: the images did not form one connected reconstruction (sizes {sizes})"]
+            fields["warnings"] = [several_models_warning([m["registered"] for m in flat], final_names[1:],
+                                                         per_cluster[0].get("left_out", {}))]
     failed = fields["failed_clusters"] = [c["cluster"] for c in per_cluster if c["error"]]
     if recorder.enabled:
         rows = [{**c, "unregistered": unregistered.get(c["cluster"], "?")} for c in per_cluster]
@@ -170,6 +171,21 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
     return MapResult(num_images, len(payloads), flat, per_cluster, round(elapsed, 3), direct)
 
 
+def several_models_warning(sizes: list[int], other_names: list[set[str]], left_out: dict[str, str],
+                           shown: int = 3) -> str:
+    """The warning of a cluster that gave several models (``sizes``, largest first): why the
+    other models' images (``other_names``) are not in the largest, from its ``left_out``
+    reasons (:meth:`sfm.mapper.growth.Growth.left_out`), ``shown`` of them by name."""
+    text = (f"{len(sizes)} models: the images did not form one connected reconstruction "
+            f"(sizes {', '.join(map(str, sizes))})")
+    others = sorted(n for names in other_names for n in names if n in left_out)
+    if others:
+        why = ", ".join(f"{n} ({left_out[n]})" for n in others[:shown])
+        more = f" and {len(others) - shown} more" if len(others) > shown else ""
+        text += f"; not in the largest: {why}{more}"
+    return text
+
+
 def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]:
     """One cluster's payload -> its local models (paper section 3.2: "image clusters are
     distributed into servers"); safe in any worker process."""
@@ -178,12 +194,12 @@ def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]
         return reconstruct_incremental(payload, options)
 
 
-def map_cluster_growth(task: tuple[MapperInput, MapperOptions, int]) -> tuple[list[Reconstruction], Growth | None]:
+def map_cluster_growth(task: tuple[MapperInput, MapperOptions, int]) -> tuple[list[Reconstruction], Growth]:
     """The ``map`` stage's task: :func:`map_cluster`, and with ``max_points > 0`` how the
     models grew (``sfm.mapper.growth``, at most that many points per step) for the recording,
-    which this process cannot write."""
+    which this process cannot write; with ``max_points`` 0, only why images were left out."""
     payload, options, max_points = task
-    growth = Growth(payload.label, list(payload.names), max_points) if max_points > 0 else None
+    growth = Growth(payload.label, list(payload.names), max(max_points, 0))
     with progress.task(payload.label):
         return reconstruct_incremental(payload, options, growth), growth
 

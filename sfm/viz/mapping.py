@@ -72,7 +72,7 @@ def log_growth(recorder: Recorder, growth) -> int:
     lines = [f"| {name} | {reason} |" for name, reason in left_out]
     text = (f"**{label}**: every one of its {len(growth.names)} images is in a model." if not lines else
             f"**{label}**: {len(lines)} of its {len(growth.names)} images are in no model.\n\n"
-            "| image | why (first model's view) |\n|---|---|\n" + "\n".join(lines))
+            "| image | why (the largest model's view) |\n|---|---|\n" + "\n".join(lines))
     recorder.log(f"clusters/{label}/unregistered", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
     if label not in recorder.views["clusters"]:
         recorder.views["clusters"].append(label)
@@ -86,15 +86,15 @@ def calibration_text(lines: list[str]) -> str:
 
 
 def _left_out(growth):
-    """``(name, reason)`` of the images in no kept model, the reason the first attempt gave."""
+    """``(name, reason)`` of the images in no kept model, the reason :meth:`Growth.left_out` gives."""
     kept = set()
     for model in growth.models:
         if model.rank >= 0:
             kept |= {growth.names[i] for i in model.registered.tolist()}
-    first = growth.models[0].left_out if growth.models else {}
+    reasons = growth.left_out()
     for name in growth.names:
         if name not in kept:
-            yield name, first.get(name, "no initial pair could be reconstructed")
+            yield name, reasons[name]
 
 
 def log_local_model(recorder: Recorder, label: str, m: int, model, growth_logged: bool = False) -> None:
