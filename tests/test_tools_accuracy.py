@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("pycolmap")  # the script imports the peer's helpers
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_accuracy import failures, gt_sets, ordinal, path_order, sparser_set, verdict  # noqa: E402
+from bench_accuracy import downscaled_set, failures, gt_sets, ordinal, path_order, sparser_set, verdict  # noqa: E402
 
 
 def _row(method: str, registered: str, auc1: float, auc5: float) -> dict:
@@ -99,6 +99,34 @@ def test_a_sparser_set_keeps_every_nth_image_along_the_path_with_its_ground_trut
         table = (folder / "gt" / "cameras_gt_opencv.txt").read_text().splitlines()
         assert table[0].startswith("#") and sorted(line.split()[0] for line in table[1:]) == kept
     assert gt_sets(tmp_path / "sparser") == ["ring_every3_from1", "ring_every3_from2"]
+
+
+def test_a_downscaled_set_reduces_each_image_keeps_its_exif_and_the_ground_truth(tmp_path):
+    from PIL import Image
+
+    from sfm.io.exif import exif_tags, focal_prior_from_exif
+
+    data = tmp_path / "data"
+    (data / "door" / "images" / "sub").mkdir(parents=True)
+    (data / "door" / "gt").mkdir()
+    rng = np.random.default_rng(0)
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = 28  # FocalLengthIn35mmFilm, in the Exif sub-IFD
+    Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)).save(data / "door" / "images" / "a.jpg",
+                                                                            exif=exif)
+    pixels = rng.integers(0, 255, (40, 30), dtype=np.uint8)
+    Image.fromarray(pixels).save(data / "door" / "images" / "sub" / "b.png")
+    table = "# IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ\na.jpg 80 60 50 50 39.5 29.5 1 0 0 0 0 0 0\n"
+    (data / "door" / "gt" / "cameras_gt_opencv.txt").write_text(table)
+    assert downscaled_set(data, "door", 2, tmp_path / "small") == "door_1of2"
+    folder = tmp_path / "small" / "door_1of2"
+    with Image.open(folder / "images" / "a.jpg") as a, Image.open(folder / "images" / "sub" / "b.png") as b:
+        assert (a.format, a.size, b.format, b.size) == ("JPEG", (40, 30), "PNG", (15, 20))
+        assert focal_prior_from_exif(exif_tags(a), *a.size) == (pytest.approx(28 / 36 * 40), "exif-35mm")
+        box = pixels.reshape(20, 2, 15, 2).mean(axis=(1, 3))  # the 2 x 2 box filter
+        assert np.abs(np.asarray(b, dtype=float) - box).max() <= 0.5
+    assert (folder / "gt" / "cameras_gt_opencv.txt").read_text() == table
+    assert gt_sets(tmp_path / "small") == ["door_1of2"]
 
 
 @pytest.mark.parametrize("n, suffix", [(2, "nd"), (3, "rd"), (4, "th"), (11, "th"), (12, "th"), (21, "st"), (22, "nd")])

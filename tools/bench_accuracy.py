@@ -2,7 +2,7 @@
 
     python tools/bench_accuracy.py [--data ../shared/data] [--sets lund_door temple_ring ...]
                                    [--out DIR] [--recording] [--no-colmap-frontend] [--no-per-image]
-                                   [--every N [N ...]]
+                                   [--every N [N ...]] [--downscale F [F ...]]
 
 For every set (default: every folder of ``--data`` with ``images/`` and a pose table
 ``gt/cameras_gt_opencv.txt``), on the same images and evaluated the same way
@@ -37,6 +37,11 @@ and every 3rd image along the camera path (:func:`path_order`), from each possib
 only for the sets whose every N-th image still makes ``--every-min-images`` images (10).
 Fewer, wider-spaced views of the same scene: the condition of a narrow-field object ring
 photographed in fewer steps, which the shared sets do not hold.
+
+``--downscale 2`` also runs the main table's methods on each set at half resolution (each
+image box-filtered by 2 in both directions, its EXIF kept; ``<out>/downscaled/<set>_1of2``), and
+``--every`` on those too: fewer and coarser features on the same views, the condition of weakly
+textured or low-resolution photos.
 
 A set whose ``gt/`` also holds projection matrices (``*P_matrices.txt``, read by
 :func:`sfm.evaluation.ground_truth.read_projection_matrices`) gets a second table: the same
@@ -118,6 +123,29 @@ def sparser_set(data: Path, name: str, every: int, start: int, root: Path) -> st
     lines = (data / name / GT_TABLE).read_text(encoding="utf-8").splitlines(keepends=True)
     (root / sub / GT_TABLE).write_text("".join(
         line for line in lines if not line.strip() or line.startswith("#") or line.split()[0] in kept), encoding="utf-8")
+    return sub
+
+
+def downscaled_set(data: Path, name: str, factor: int, root: Path) -> str:
+    """``data/name`` with every image reduced by ``factor`` in both directions (Pillow's box
+    filter, the same file format, the EXIF kept: a 35 mm equivalent focal length still holds)
+    and the same GT table (poses do not depend on the resolution), written as
+    ``root/<name>_1of<factor>``; its name under ``root``."""
+    from PIL import Image
+
+    sub = f"{name}_1of{factor}"
+    fresh(root / sub)
+    (root / sub / GT_TABLE.parent).mkdir(parents=True)
+    shutil.copy(data / name / GT_TABLE, root / sub / GT_TABLE)
+    source = data / name / "images"
+    for path in sorted(p for p in source.rglob("*") if p.is_file()):
+        target = root / sub / "images" / path.relative_to(source)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with Image.open(path) as im:
+            exif = im.info.get("exif")
+            small = im.reduce(factor)
+            extra = {"quality": 95} if im.format == "JPEG" else {}
+            small.save(target, format=im.format, **({"exif": exif} if exif else {}), **extra)
     return sub
 
 
@@ -263,6 +291,15 @@ def second_opinions(folder: Path, gt: dict, models: list[tuple[str, Path | None]
     return out
 
 
+def variant_section(heading: str, rows: list[dict], notes: list[str], where: Path) -> str:
+    """The page's section of a variant of a set (sparser, downscaled): printed, and its rows
+    and notes kept in ``where/rows.json``."""
+    text = f"#### {heading}\n\n{markdown_table(rows)}\n\n" + "\n".join(f"- {n}" for n in notes)
+    print(text + "\n", flush=True)
+    (where / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes}, indent=1))
+    return text
+
+
 def ordinal(n: int) -> str:
     """The English ordinal suffix of ``n`` (2 -> "nd", 11 -> "th")."""
     return "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
@@ -284,10 +321,15 @@ def main(argv: list[str] | None = None) -> int:
                         "(main table's methods only)")
     parser.add_argument("--every-min-images", type=int, default=10, metavar="M",
                         help="--every skips a set whose every N-th image is fewer than M images (default: %(default)s)")
+    parser.add_argument("--downscale", type=int, nargs="+", default=[], metavar="F",
+                        help="also each set with its images reduced F times in both directions, and --every on "
+                        "those (main table's methods only)")
     add_page_arguments(parser)
     args = parser.parse_args(argv)
     if any(n < 2 for n in args.every):
         parser.error("--every takes integers of at least 2")
+    if any(f < 2 for f in args.downscale):
+        parser.error("--downscale takes integers of at least 2")
     logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
     import os
 
@@ -313,18 +355,24 @@ def main(argv: list[str] | None = None) -> int:
         sections.append(text)
         (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes, "other_gt": others,
                                                           "per_image": per_image}, indent=1))
-        num_images = len(read_gt_table(args.data / name / GT_TABLE))
-        for every, start in [(n, k) for n in args.every if num_images // n >= args.every_min_images for k in range(n)]:
-            sub = sparser_set(args.data, name, every, start, out / "sparser")
-            rows, notes, _ = bench_set(out / "sparser", sub, out / "sparser_runs", threads, args.recording,
+        variants = [(args.data, name, name)]
+        for factor in args.downscale:
+            sub = downscaled_set(args.data, name, factor, out / "downscaled")
+            rows, notes, _ = bench_set(out / "downscaled", sub, out / "downscaled_runs", threads, args.recording,
                                        not args.no_colmap_frontend, context)
-            count = len(range(start, num_images, every))
-            text = (f"#### {name}, every {every}{ordinal(every)} image along the camera path from the "
-                    f"{start + 1}{ordinal(start + 1)} ({count} images)\n\n"
-                    f"{markdown_table(rows)}\n\n" + "\n".join(f"- {n}" for n in notes))
-            print(text + "\n", flush=True)
-            sections.append(text)
-            (out / "sparser_runs" / sub / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes}, indent=1))
+            label = f"{name} at 1/{factor} resolution"
+            sections.append(variant_section(label, rows, notes, out / "downscaled_runs" / sub))
+            variants.append((out / "downscaled", sub, label))
+        num_images = len(read_gt_table(args.data / name / GT_TABLE))
+        for root, source, label in variants:
+            for every, start in [(n, k) for n in args.every if num_images // n >= args.every_min_images for k in range(n)]:
+                sub = sparser_set(root, source, every, start, out / "sparser")
+                rows, notes, _ = bench_set(out / "sparser", sub, out / "sparser_runs", threads, args.recording,
+                                           not args.no_colmap_frontend, context)
+                count = len(range(start, num_images, every))
+                heading = (f"{label}, every {every}{ordinal(every)} image along the camera path from the "
+                           f"{start + 1}{ordinal(start + 1)} ({count} images)")
+                sections.append(variant_section(heading, rows, notes, out / "sparser_runs" / sub))
     intro = ("graphsfm (defaults; and with forced clusters) and pycolmap's mappers on the same images, "
              "evaluated by `sfm.evaluation.metrics.evaluate` (largest model; rotation error after Sim3 "
              "alignment; relative-pose AUC). Times: graphsfm's default row the whole run (extract to final "
@@ -333,7 +381,9 @@ def main(argv: list[str] | None = None) -> int:
              "The tables 'one camera per image' repeat graphsfm's run with `--camera-mode per-image` "
              "(internet photos' conditions: each image's intrinsics estimated on their own) and COLMAP's "
              "mappers on its database; the acceptance verdicts are the main tables'. The tables 'every N-th image "
-             "along the camera path' (`--every`) run the main table's methods on a sparser version of the set.")
+             "along the camera path' (`--every`) run the main table's methods on a sparser version of the set, "
+             "the tables 'at 1/F resolution' (`--downscale`) on the set's images reduced F times (and `--every` "
+             "on those).")
     publish(args, "accuracy", "Pose accuracy on the photo sets with ground truth", intro + "\n\n" + "\n\n".join(sections))
     return 0
 
