@@ -106,7 +106,7 @@ def _lens_field_error(params: np.ndarray, truth: np.ndarray, f: float, cx: float
 
 def test_opencv_recovers_a_wide_angle_lens_simple_radial_cannot_hold(tmp_path):
     """A phone-like lens with k1, k2, p1, p2: OPENCV recovers the lens (fx and fy within 0.5%,
-    k1, p1, p2, and the distortion within 0.3 px over the inscribed circle, where a lens without
+    k1, p1, p2, and the distortion within 0.5 px over the inscribed circle, where a lens without
     k2, p1, p2 is off by pixels), and its cameras' rotations are several times closer to the truth
     than SIMPLE_RADIAL's."""
     opts, scene, pairs = _lens_scene(20)
@@ -127,7 +127,7 @@ def test_opencv_recovers_a_wide_angle_lens_simple_radial_cannot_hold(tmp_path):
     params, opencv = results["OPENCV"]
     assert abs(params[4] - truth[0]) < 0.01
     np.testing.assert_allclose(params[6:8], truth[2:], atol=5e-4)
-    assert _lens_field_error(params[4:8], truth, f, cx, cy, scene.width, scene.height) < 0.3
+    assert _lens_field_error(params[4:8], truth, f, cx, cy, scene.width, scene.height) < 0.5
     np.testing.assert_allclose(params[:2], [f, f], rtol=5e-3)
     radial = results["SIMPLE_RADIAL"][1]
     assert opencv.median_rotation_error_deg < 0.5 * radial.median_rotation_error_deg

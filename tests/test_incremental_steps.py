@@ -261,3 +261,65 @@ def test_global_loss_scale_is_the_inlier_threshold_for_final_models_and_1px_for_
     assert opts.for_model(final=False).global_loss_scale == 0.7
     given = MapperOptions(global_loss_scale=2.0)
     assert given.for_model(final=True) is given and given.for_model(final=False) is given
+
+
+class _Views:
+    """The part of a MapperState that BundleAdjuster.posing_tracks reads: which registered
+    image holds each inlier row of each track."""
+
+    def __init__(self, num_images: int, track_images: list[list[int]]) -> None:
+        self.names = [f"im{k}" for k in range(num_images)]
+        self.track_images = track_images
+        self.obs_image = np.array([i for images in track_images for i in images], dtype=np.int64)
+        self.starts = np.cumsum([0] + [len(images) for images in track_images])
+
+    def inlier_rows(self, tracks):
+        rows = [np.arange(self.starts[t], self.starts[t + 1]) for t in tracks]
+        owner = [np.full(len(r), k) for k, r in enumerate(rows)]
+        return np.concatenate(rows), np.concatenate(owner)
+
+
+def _posing(views: _Views) -> list[int]:
+    from sfm.mapper.bundle_adjuster import BundleAdjuster
+
+    adjuster = BundleAdjuster.__new__(BundleAdjuster)  # only the state's views are read
+    adjuster.state, adjuster.opts = views, MapperOptions()
+    return adjuster.posing_tracks(np.arange(len(views.track_images))).tolist()
+
+
+def test_final_ba_poses_the_cameras_with_points_three_images_see_and_two_view_points_only_where_needed():
+    confirmed = [[0, 1, 2]] * 40  # tracks 0-39
+    views = _Views(4, confirmed + [[0, 1], [2, 3], [0, 1, 2, 3]])
+    # track 40: images 0 and 1 see 40+ points of three views: left out; track 41: image 3
+    # sees one such point (track 42), fewer than PnP's 30: kept
+    assert _posing(views) == list(range(40)) + [41, 42]
+    seen_by_30 = _Views(4, confirmed + [[1, 2, 3]] * 30 + [[0, 1], [2, 3]])  # image 3: 30 such points
+    assert _posing(seen_by_30) == list(range(70))
+    two_images = _Views(2, [[0, 1]] * 50)  # a two-view model keeps every point
+    assert _posing(two_images) == list(range(50))
+
+
+def test_the_final_ba_adjusts_poses_with_three_view_points_and_re_estimates_the_others(tmp_path, monkeypatch):
+    """On a 12-image orbit, the final BA's problem holds only points seen by three images or
+    more (every image sees more than 30 of them); the model keeps its two-view points,
+    re-estimated with the cameras held, so they reproject as well as the others."""
+    import sfm.mapper.bundle_adjuster as mapper_ba
+
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=12, observations_per_image=500, seed=6))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    final_problems = []
+    original = mapper_ba.bundle_adjust_partitioned
+
+    def spy(problem, num_parts, options, **kwargs):
+        if options.on_iteration is not None:  # a final BA
+            final_problems.append(np.bincount(np.asarray(problem.obs_point)))
+        return original(problem, num_parts, options, **kwargs)
+
+    monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
+    [model] = incremental.reconstruct_incremental(payload, MapperOptions())
+    assert len(model.images) == 12 and final_problems
+    assert all(views.min() >= 3 for views in final_problems)
+    pids, errors = model.reprojection_errors()
+    two_view = np.array([len(model.points3D[p].track) == 2 for p in pids])
+    assert two_view.sum() > 100  # the orbit's short tracks stay in the model
+    assert np.median(errors[two_view]) < 1.5 * np.median(errors[~two_view])

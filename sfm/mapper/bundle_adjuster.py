@@ -16,7 +16,9 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
 - BA of a region (a model extended by new images, ``graphsfm extend``): the given images and
   the registered images that share points with them free, every point those free images see,
   the other images that see those points held; its cost grows with the region, not the model.
-- Final BAs of a model: every image and every track, to a tighter tolerance; with
+- Final BAs of a model: every image and every track seen by three images or more (a point
+  only two images see joins when one of them needs it), to a tighter tolerance, the other
+  points then re-estimated with the cameras held; with
   ``intrinsics_refinement="auto"`` the distortion only of the cameras whose distortion the model
   determines and the principal point too of each camera whose shift from its nominal value the
   model determines, both tested before the BA at the current state
@@ -54,6 +56,9 @@ log = logging.getLogger(__name__)
 GROWING_TOLERANCE = 1e-3
 GROWING_MAX_ITERATIONS = 25
 FINAL_TOLERANCE = 1e-4
+# Registered images that must see a track for the final BAs to adjust the poses with it
+# (BundleAdjuster.posing_tracks; COLMAP's global mapper: min_track_length 3).
+FINAL_MIN_VIEWS = 3
 
 
 class BundleAdjuster:
@@ -101,14 +106,17 @@ class BundleAdjuster:
         free = np.flatnonzero(s.registered)
         tracks = np.flatnonzero(s.track_valid)
         if final:
-            parts = self._num_parts(tracks)
+            posing = self.posing_tracks(tracks)
+            parts = self._num_parts(posing)
             refine = self.opts.intrinsics_refinement
             if refine == "auto":
-                refine = self.calibration.final_levels(free, tracks, loss_scale)
-            self._adjust(free, tracks, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
+                refine = self.calibration.final_levels(free, posing, loss_scale)
+            self._adjust(free, posing, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
                          on_iteration=_report_final_ba(len(free)))
             if parts > 1:
-                self.refine_points(tracks)
+                self.refine_points(posing)
+            if len(posing) < len(tracks):
+                self.refine_points(np.setdiff1d(tracks, posing, assume_unique=True))
         else:
             subset = self.track_subset(tracks)
             self._adjust(free, subset, self._growing_level(), GROWING_MAX_ITERATIONS, GROWING_TOLERANCE,
@@ -117,6 +125,27 @@ class BundleAdjuster:
                 self.refine_points(np.setdiff1d(tracks, subset))
         s.drop_degenerate_cameras()
         s.filter_observations(tracks)
+
+    def posing_tracks(self, tracks: np.ndarray) -> np.ndarray:
+        """The tracks a final BA adjusts the poses with: those seen by at least
+        :data:`FINAL_MIN_VIEWS` registered images, and a point only two images see when one of
+        them sees fewer than ``abs_pose_min_num_inliers`` of the others (the points PnP needs
+        to register an image; a two-image model keeps all its points).  A point two images see
+        has four coordinates for three unknowns: each observation's redundancy number is about
+        1/4 (1/2 with three views), so an error in it shows in the residual at a quarter of its
+        size, and a wrong match well inside ``max_reproj_error`` moves the two poses unseen
+        (Baarda's internal reliability) where a third view would expose it.  COLMAP's global
+        mapper adjusts only tracks of three views or more.  The other points are re-estimated
+        with the cameras held after the BA, so the model keeps them."""
+        s = self.state
+        rows, owner = s.inlier_rows(tracks)
+        views = np.bincount(owner, minlength=len(tracks))
+        confirmed = views >= FINAL_MIN_VIEWS
+        image = s.obs_image[rows]
+        seen = np.bincount(image[confirmed[owner]], minlength=len(s.names))
+        weak = seen < self.opts.abs_pose_min_num_inliers
+        needed = np.bincount(owner, weights=weak[image], minlength=len(tracks)) > 0
+        return tracks[confirmed | needed]
 
     def region(self, images: np.ndarray, loss_scale: float | None = None) -> np.ndarray:
         """Final BA around ``images`` (the images added to a finished model): they and the
