@@ -21,6 +21,7 @@ from sfm.mapper.principal_point import (MAX_CORRELATION, SIGNIFICANCE_CHI2, chec
 from sfm.mapper.incremental import reconstruct_incremental
 from sfm.mapper.options import MapperOptions
 from sfm.merge.extension import refine_extension
+from sfm.merge.refinement import refine_with_poses
 from sfm.stages.map import run_map
 from sfm.stages.payloads import ClusterPayloads
 from sfm.synthetic.matching import simulate_matching, write_database
@@ -223,6 +224,35 @@ def test_an_extensions_global_ba_tests_a_principal_point_that_passed_before_agai
         params = np.array(cam.params, float)
         params[1:3] = centre + np.array(shift) + [4.0, -3.0]  # passed in a smaller model, 5 px off
         recon = refine_extension(payload, MapperOptions(intrinsics_refinement="auto"), poses, {cam_id: params}, new)
+        assert len(recon.registered_image_ids) == 16
+        found[shift] = np.asarray(recon.cameras[cam_id].params)[1:3] - centre
+    np.testing.assert_array_equal(found[0.0, 0.0], [0.0, 0.0])      # tested again, held at the nominal value
+    np.testing.assert_allclose(found[20.0, -12.0], [20.0, -12.0], atol=1.5)
+
+
+def test_a_merged_model_tests_a_principal_point_a_cluster_refined_again(tmp_path):
+    """The merge's refinement (``sfm.merge.refinement``) decides each camera's self-calibration
+    again on all the photos: a principal point one cluster freed (here 5 px off the centre the
+    data show) goes back to its nominal value when the merged model does not find it
+    significant, and one the merged model does find (keypoints moved by (20, -12) px) stays
+    refined, found within 1.5 px."""
+    opts = SynthOptions(scene="orbit", num_images=16, observations_per_image=800, seed=3)
+    scene = make_scene(opts)
+    pairs = simulate_matching(scene, opts)
+    truth = gt_reconstruction(scene)
+    poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation) for im in truth.images.values()}
+    centre = np.array([(scene.width - 1) / 2, (scene.height - 1) / 2])
+    found = {}
+    for shift in ((0.0, 0.0), (20.0, -12.0)):
+        db = tmp_path / f"{shift[0]:.0f}.db"
+        moved = replace(scene, keypoints=[k + np.array(shift) for k in scene.keypoints])
+        write_database(moved, pairs, db, camera_model="SIMPLE_RADIAL")
+        [payload] = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=False, min_inliers=15)
+        with Database(db, readonly=True) as database:
+            [(cam_id, cam)] = database.read_cameras().items()
+        params = np.array(cam.params, float)
+        params[1:3] = centre + np.array(shift) + [4.0, -3.0]  # a cluster's estimate, 5 px off
+        recon = refine_with_poses(payload, MapperOptions(intrinsics_refinement="auto"), poses, {cam_id: params})
         assert len(recon.registered_image_ids) == 16
         found[shift] = np.asarray(recon.cameras[cam_id].params)[1:3] - centre
     np.testing.assert_array_equal(found[0.0, 0.0], [0.0, 0.0])      # tested again, held at the nominal value

@@ -13,9 +13,11 @@ screen, at the cost of a fraction of the final BA.
 
 :class:`SelfCalibration` belongs to a :class:`sfm.mapper.bundle_adjuster.BundleAdjuster`, whose
 problems it tests on, and remembers within one model what it decided: a camera whose principal
-point is already off its nominal value passed before (in this model, or in the clusters merged
-into it) and keeps it free unless :meth:`SelfCalibration.retest` asks for the test again; one
-the split-sample step held stays held, untested again.  The first two steps of the principal
+point is already off its nominal value passed before and keeps it free unless
+:meth:`SelfCalibration.retest` asks for the test again, as a merged model does of what its
+clusters decided (each on its part of the photos; with many clusters, one passes by chance
+more often than one test on the whole model would); one the split-sample step held stays
+held, untested again.  The first two steps of the principal
 point's test are cheap and run at every final BA, as does the distortion test; the split-sample
 step, two BAs of half the images each, runs only for a camera that passed them.
 """

@@ -24,7 +24,8 @@ Design:
   pose of the model nearest the anchor, a camera the parameters of the model that registered
   most of its images.
 - Refinement (Figure 1 and the end of section 3's overview: re-triangulation and BA "can be
-  executed alternatively until convergence"): the merged model starts from the local models'
+  executed alternatively until convergence"; its self-calibration decided again on all the
+  photos, not kept from the clusters): the merged model starts from the local models'
   own points, moved by the same similarities (Alg. 2's ``C_final`` holds the clusters' points
   as well as their cameras; a track takes the point that the most of its observations saw in
   one model, with the observations that model kept), the other tracks are triangulated with the merged poses, then

@@ -9,7 +9,9 @@ paper: "The re-triangulation step and bundle adjustment step can be executed alt
 convergence"; COLMAP's global refinement stops the same way).  Merged poses come from similarity
 transforms, not from a BA over the merged tracks, so the first triangulation rejects observations
 that the first BA brings back within reach: on clusters joined through thin overlaps one
-alternation is not enough.
+alternation is not enough.  The merged model's final BAs decide each camera's distortion and
+principal point again, on all its photos (``SelfCalibration.retest``): each cluster decided on
+its part of them.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     state.set_camera_params(camera_params)
     state.set_poses(poses)
     adjuster = BundleAdjuster(state)
+    adjuster.calibration.retest()  # each cluster decided on its part of the photos; the merged model on all
     if points is not None:
         log.info("%s: %d tracks start from the local models' points", state.payload.label, state.seed_points(*points))
     state.retriangulate()
