@@ -200,18 +200,16 @@ def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, capl
     assert auto.params[1:3].tolist() == [(scene.width - 1) / 2, (scene.height - 1) / 2]
 
 
-def test_an_extensions_global_ba_tests_a_principal_point_that_passed_before_again(tmp_path):
-    """An extension whose new images make up much of the model runs the global BA with every
-    camera's self-calibration decided again (``sfm.merge.extension``): a principal point a
-    smaller model had freed (here 4 px off the centre the data show) goes back to its nominal
-    value when the whole model does not find it significant, and one the whole model does find
-    (the orbit's keypoints moved by (20, -12) px) stays refined and is found within 1.5 px."""
+def _principal_point_refined_from_an_earlier_estimate(tmp_path, refine) -> dict:
+    """A 16-image orbit, centred and with its keypoints moved by (20, -12) px, refined from its
+    true poses by ``refine(payload, options, poses, camera_params)`` with the camera's principal
+    point 5 px off the centre the data show (what a smaller model had freed): for each shift, the
+    refined principal point's offset from the image centre."""
     opts = SynthOptions(scene="orbit", num_images=16, observations_per_image=800, seed=3)
     scene = make_scene(opts)
     pairs = simulate_matching(scene, opts)
     truth = gt_reconstruction(scene)
     poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation) for im in truth.images.values()}
-    new = set(sorted(poses)[8:])
     centre = np.array([(scene.width - 1) / 2, (scene.height - 1) / 2])
     found = {}
     for shift in ((0.0, 0.0), (20.0, -12.0)):
@@ -222,39 +220,32 @@ def test_an_extensions_global_ba_tests_a_principal_point_that_passed_before_agai
         with Database(db, readonly=True) as database:
             [(cam_id, cam)] = database.read_cameras().items()
         params = np.array(cam.params, float)
-        params[1:3] = centre + np.array(shift) + [4.0, -3.0]  # passed in a smaller model, 5 px off
-        recon = refine_extension(payload, MapperOptions(intrinsics_refinement="auto"), poses, {cam_id: params}, new)
+        params[1:3] = centre + np.array(shift) + [4.0, -3.0]
+        recon = refine(payload, MapperOptions(intrinsics_refinement="auto"), poses, {cam_id: params})
         assert len(recon.registered_image_ids) == 16
         found[shift] = np.asarray(recon.cameras[cam_id].params)[1:3] - centre
+    return found
+
+
+def test_an_extensions_global_ba_tests_a_principal_point_that_passed_before_again(tmp_path):
+    """An extension whose new images make up much of the model runs the global BA with every
+    camera's self-calibration decided again (``sfm.merge.extension``): a principal point a
+    smaller model had freed goes back to its nominal value when the whole model does not find
+    it significant, and one the whole model does find stays refined and is found within 1.5 px."""
+    def extend(payload, options, poses, params):
+        return refine_extension(payload, options, poses, params, set(sorted(poses)[8:]))
+
+    found = _principal_point_refined_from_an_earlier_estimate(tmp_path, extend)
     np.testing.assert_array_equal(found[0.0, 0.0], [0.0, 0.0])      # tested again, held at the nominal value
     np.testing.assert_allclose(found[20.0, -12.0], [20.0, -12.0], atol=1.5)
 
 
 def test_a_merged_model_tests_a_principal_point_a_cluster_refined_again(tmp_path):
     """The merge's refinement (``sfm.merge.refinement``) decides each camera's self-calibration
-    again on all the photos: a principal point one cluster freed (here 5 px off the centre the
-    data show) goes back to its nominal value when the merged model does not find it
-    significant, and one the merged model does find (keypoints moved by (20, -12) px) stays
-    refined, found within 1.5 px."""
-    opts = SynthOptions(scene="orbit", num_images=16, observations_per_image=800, seed=3)
-    scene = make_scene(opts)
-    pairs = simulate_matching(scene, opts)
-    truth = gt_reconstruction(scene)
-    poses = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation) for im in truth.images.values()}
-    centre = np.array([(scene.width - 1) / 2, (scene.height - 1) / 2])
-    found = {}
-    for shift in ((0.0, 0.0), (20.0, -12.0)):
-        db = tmp_path / f"{shift[0]:.0f}.db"
-        moved = replace(scene, keypoints=[k + np.array(shift) for k in scene.keypoints])
-        write_database(moved, pairs, db, camera_model="SIMPLE_RADIAL")
-        [payload] = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=False, min_inliers=15)
-        with Database(db, readonly=True) as database:
-            [(cam_id, cam)] = database.read_cameras().items()
-        params = np.array(cam.params, float)
-        params[1:3] = centre + np.array(shift) + [4.0, -3.0]  # a cluster's estimate, 5 px off
-        recon = refine_with_poses(payload, MapperOptions(intrinsics_refinement="auto"), poses, {cam_id: params})
-        assert len(recon.registered_image_ids) == 16
-        found[shift] = np.asarray(recon.cameras[cam_id].params)[1:3] - centre
+    again on all the photos: a principal point one cluster freed goes back to its nominal value
+    when the merged model does not find it significant, and one the merged model does find
+    stays refined, found within 1.5 px."""
+    found = _principal_point_refined_from_an_earlier_estimate(tmp_path, refine_with_poses)
     np.testing.assert_array_equal(found[0.0, 0.0], [0.0, 0.0])      # tested again, held at the nominal value
     np.testing.assert_allclose(found[20.0, -12.0], [20.0, -12.0], atol=1.5)
 
