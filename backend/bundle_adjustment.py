@@ -347,8 +347,8 @@ def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array
     of convergence (a growing model before its final BA) would otherwise inflate the covariance
     by its excess cost.  At a BA's optimum with some components held, the step is where freeing
     them would move them to first order, and the covariance how well the data determine them.
-    A Cal3Bundler group's (f, k1, k2) fill [fx and fy, k1, k2].  None for groups not refined or without observations, and for
-    every group when the system is singular."""
+    A Cal3Bundler group's (f, k1, k2) fill [fx and fy, k1, k2].  None for groups not refined or
+    without observations, and for every group when the system is singular."""
     built = _build(problem, options)
     graph, values, levels, refined, cameras = built.graph, built.values, built.levels, built.refined, built.cameras
     out: list[tuple[Array, Array] | None] = [None] * len(problem.camera_models)

@@ -142,15 +142,14 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     nominal = np.asarray(nominal_ds2, float)[list(PP)]
     (a, cov_a), (b, cov_b) = halves
     pa, pb = np.asarray(a, float)[list(PP)], np.asarray(b, float)[list(PP)]
-    pooled = np.asarray(cov_a, float)[np.ix_(PP, PP)] + np.asarray(cov_b, float)[np.ix_(PP, PP)]
+    ca, cb = np.asarray(cov_a, float)[np.ix_(PP, PP)], np.asarray(cov_b, float)[np.ix_(PP, PP)]
     d = pa - pb
-    chi2 = chi_square(d, pooled)
+    chi2 = chi_square(d, ca + cb)
     shifts = (tuple(pa - nominal), tuple(pb - nominal))
     if not np.isfinite(chi2):
         return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
     try:
-        info_a = np.linalg.inv(np.asarray(cov_a, float)[np.ix_(PP, PP)])
-        info_b = np.linalg.inv(np.asarray(cov_b, float)[np.ix_(PP, PP)])
+        info_a, info_b = np.linalg.inv(ca), np.linalg.inv(cb)
         cov_mean = np.linalg.inv(info_a + info_b)
     except np.linalg.LinAlgError:
         return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
