@@ -107,28 +107,56 @@ def test_a_shift_is_kept_only_when_the_halves_reproduce_it(shift_a, shift_b, acc
     np.testing.assert_allclose(test.halves_shift, [shift_a, shift_b])
 
 
-def test_a_half_that_sees_the_principal_point_poorly_counts_for_little():
-    """One half determines the shift to 1 px, the other to 8 px (the end of an orbit whose
-    views, without the rest of the ring, trade the principal point for their rotations).  Their
-    difference (8, -7) is within the pooled covariance (chi2 113 / 65, no widening), so they
-    agree; the weighted mean (5.88, -3.89) with covariance I / (1 + 1/64) is significant
-    (chi2 50.5), where the plain mean (2, 0.5) with (I + 64 I) / 4 would not be (chi2 0.26)."""
+def test_a_half_that_sees_the_principal_point_less_well_counts_for_less():
+    """One half determines the shift to 1 px, the other to 1.5 px; both can see the whole
+    model's shift (5, -3) (chi2 34 and 15.1 with their own covariances, above 11.83).  Their
+    weighted mean (5.38, -3.38), each half weighed by its inverse covariance, has chi2 58.4;
+    their difference (2, -2) has chi2 8 / 3.25 = 2.46 over 2 degrees of freedom, which widens
+    the mean's covariance by 1.23 to chi2 47.5, still significant.  Halves that show opposite
+    shifts precisely disagree and are held."""
+    estimate = NOMINAL.copy()
+    estimate[[3, 4]] += (5.0, -3.0)
+    screened = check_principal_point(NOMINAL, estimate, _covariance(1.0), FREE)
+    a, b = NOMINAL.copy(), NOMINAL.copy()
+    a[[3, 4]] += (6.0, -4.0)
+    b[[3, 4]] += (4.0, -2.0)
+    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (b, _covariance(1.5))))
+    assert test.accepted
+    assert test.halves_chi2 == pytest.approx(8.0 / 3.25, rel=1e-9)
+    weight = 1.0 / (1.0 + 1.0 / 2.25)
+    mean = weight * (np.array([6.0, -4.0]) + np.array([4.0, -2.0]) / 2.25)
+    np.testing.assert_allclose(mean, [5.385, -3.385], atol=1e-3)
+    widened = mean @ mean / weight / (test.halves_chi2 / 2)
+    assert f"chi2 {widened:.1f} of the halves' weighted mean shift" in test.reason
+    assert widened == pytest.approx(47.47, abs=0.01)
+    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (NOMINAL - a + NOMINAL, _covariance(1.0))))
+    assert not test.accepted and test.reason.startswith("not reproducible")
+
+
+@pytest.mark.parametrize("std_b, reason", [
+    (8.0, "significant and determinable; the halves cannot check it: a half sees the shift at chi2 0.5, "
+          "and they agree (chi2 1.7)"),
+    (2.0, "not reproducible"),
+    (1.0, "not reproducible"),
+])
+def test_halves_that_cannot_see_the_shift_and_agree_leave_the_decision_to_the_whole_model(std_b, reason):
+    """The whole model's shift (5, -3); one half estimates (6, -4) to 1 px, the other (-2, 3).
+    Determined to 8 px, that half could not see the shift whatever the truth (chi2 34 / 64), and
+    the two agree within their uncertainty (113 / 65): they say nothing about it, and the whole
+    model's test stands.  Determined to 2 px it still could not see the shift (34 / 4), but the
+    halves disagree (113 / 5 = 22.6), a shift that depends on the viewpoint: held, as it is when
+    both halves could see it (1 px)."""
     estimate = NOMINAL.copy()
     estimate[[3, 4]] += (5.0, -3.0)
     screened = check_principal_point(NOMINAL, estimate, _covariance(1.0), FREE)
     a, b = NOMINAL.copy(), NOMINAL.copy()
     a[[3, 4]] += (6.0, -4.0)
     b[[3, 4]] += (-2.0, 3.0)
-    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (b, _covariance(8.0))))
-    assert test.accepted
-    assert test.halves_chi2 == pytest.approx(113.0 / 65.0, rel=1e-9)
-    weight = 1.0 / (1.0 + 1.0 / 64.0)
-    mean = weight * (np.array([6.0, -4.0]) + np.array([-2.0, 3.0]) / 64.0)
-    assert f"chi2 {mean @ mean / weight:.1f} of the halves' weighted mean shift" in test.reason
-    assert mean @ mean / weight == pytest.approx(50.46, abs=0.01)
-    # the same halves, the weak one showing the opposite shift precisely: they disagree and are held
-    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (NOMINAL - a + NOMINAL, _covariance(1.0))))
-    assert not test.accepted and test.reason.startswith("not reproducible")
+    test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (b, _covariance(std_b))))
+    assert test.accepted == (std_b == 8.0)
+    assert test.reason.startswith(reason)
+    assert test.halves_chi2 == pytest.approx(113.0 / (1.0 + std_b**2), rel=1e-9)
+    np.testing.assert_allclose(test.halves_shift, [(6.0, -4.0), (-2.0, 3.0)])
 
 
 def test_without_both_halves_the_nominal_value_is_held():
@@ -198,6 +226,40 @@ def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, capl
     [held], [auto] = models["focal_radial"].cameras.values(), models["auto"].cameras.values()
     np.testing.assert_array_equal(auto.params[1:3], held.params[1:3])
     assert auto.params[1:3].tolist() == [(scene.width - 1) / 2, (scene.height - 1) / 2]
+
+
+def test_auto_refines_a_narrow_rings_principal_point_that_its_halves_cannot_check(tmp_path, caplog):
+    """A ring of 24 narrow views (focal length twice the image width, 400 points per view) with
+    the keypoints moved by (15, -8) px.  The whole ring determines the principal point's shift;
+    each half of it, without the ring's closure, cannot see it, and the halves agree within their
+    uncertainty: the split-sample step abstains, and "auto" refines the principal point where it
+    used to hold it (as "focal_radial" does), finding it within the whole ring's uncertainty
+    (about 2 px across the ring, 7 px along its axis), with relative poses far better than
+    holding it gives."""
+    opts = SynthOptions(scene="orbit", num_images=24, observations_per_image=400, pixel_noise=1.0,
+                        focal=2 * 1280.0, seed=0)
+    scene = make_scene(opts)
+    pairs = simulate_matching(scene, opts)
+    gt = gt_from_reconstruction(gt_reconstruction(scene))
+    moved = replace(scene, keypoints=[k + np.array([15.0, -8.0]) for k in scene.keypoints])
+    centre = np.array([(scene.width - 1) / 2, (scene.height - 1) / 2])
+    runs = {}
+    for mode in ("focal_radial", "auto"):
+        ws = tmp_path / mode
+        ws.mkdir()
+        write_database(moved, pairs, ws / "database.db", camera_model="SIMPLE_RADIAL")
+        with caplog.at_level(logging.INFO, logger="sfm.mapper.self_calibration"):
+            run_map(ws, MapperOptions(intrinsics_refinement=mode), executor=LocalExecutor(1))
+        recon = read_model(ws / "sparse" / "0")
+        assert len(recon.registered_image_ids) == 24
+        [cam] = recon.cameras.values()
+        runs[mode] = (np.asarray(cam.params)[1:3] - centre, evaluate(recon, gt).auc[1.0])
+    tests = [r.getMessage() for r in caplog.records if "principal point shift" in r.getMessage()]
+    assert tests and all("refined (significant and determinable; the halves cannot check it" in t for t in tests), tests
+    (pp_held, auc_held), (pp_found, auc_found) = runs["focal_radial"], runs["auto"]
+    np.testing.assert_array_equal(pp_held, [0.0, 0.0])
+    assert abs(pp_found[0] - 15.0) < 2.0 and abs(pp_found[1] + 8.0) < 5.0, pp_found
+    assert auc_found > auc_held + 0.15, (auc_found, auc_held)
 
 
 def _principal_point_refined_from_an_earlier_estimate(tmp_path, refine) -> dict:

@@ -41,7 +41,7 @@ Design, the loop (``sfm.mapper.incremental``):
    otherwise: a nadir block trades an undetermined distortion for a bent block); its principal
    point only when its shift from the nominal value is significant at 3 sigma, its correlation
    with the other intrinsics below 0.9, and the two halves of its images, each adjusted alone,
-   agree on it (held otherwise, as COLMAP always holds it).
+   agree on it where each half can see the shift (held otherwise, as COLMAP always holds it).
 
 Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
 image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised

@@ -33,9 +33,13 @@ a split-sample check:
   lacks (decentering distortion, a sensor not parallel to the lens, rolling shutter), which the
   covariance cannot see because it knows only the modelled parameters, shows up as estimates
   that depend on where the photos were taken from, and the widened uncertainty swallows it.
-  The price: where each half alone sees the principal point poorly (an object ring photographed
-  in few, wide steps, whose halves lose the ring's closure), the halves cannot confirm it and
-  the camera keeps its nominal value.
+  Where a half alone could not call the whole model's shift ``s`` significant (``s^T C_half^-1
+  s`` at most the same quantile), the halves can confirm it only by disagreeing: if they agree
+  within their uncertainty (the chi-square of their difference at most the quantile too), they
+  are evidence neither for nor against the shift, and the step abstains: the first two
+  decide.  An object ring photographed in few, wide steps is such a case: each half loses the
+  ring's closure, on which the principal point rests.  Halves that disagree beyond it show a
+  shift that depends on the viewpoint, seen or not, and the weighted mean decides as above.
 
 A camera that fails keeps its nominal principal point in that final BA.
 Nothing here depends on the scene: the test reads only the camera's estimates and their
@@ -130,8 +134,11 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
                       halves: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None) -> PrincipalPointTest:
     """``test`` (accepted by :func:`check_principal_point`) completed by the split-sample step:
     ``halves`` the two halves' (Cal3DS2 estimate, (9, 9) covariance), None when they could not be
-    estimated (too few images, a singular system).  Refined only if the halves' weighted mean
-    shift from the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with
+    estimated (too few images, a singular system).  Where a half has no power to see the
+    shift, ``s^T C_a^-1 s`` or ``s^T C_b^-1 s`` of the whole model's shift ``s`` at most
+    :data:`SIGNIFICANCE_CHI2`, and the halves agree, ``d^T (C_a + C_b)^-1 d`` at most the same,
+    ``test`` stands (refined).  Otherwise refined only if the halves'
+    weighted mean shift from the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with
     ``C_m = (C_a^-1 + C_b^-1)^-1``, is significant with ``C_m`` times the squared Birge ratio
     ``max(1, d^T (C_a + C_b)^-1 d / 2)`` of their difference ``d = p_a - p_b``:
     ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`.  Halves of equal covariance give the plain
@@ -148,6 +155,11 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     shifts = (tuple(pa - nominal), tuple(pb - nominal))
     if not np.isfinite(chi2):
         return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
+    power = min(chi_square(np.asarray(test.shift, float), c) for c in (ca, cb))  # NaN: singular
+    if not power > SIGNIFICANCE_CHI2 and chi2 <= SIGNIFICANCE_CHI2:  # no evidence either way: the step abstains
+        return replace(test, halves_shift=shifts, halves_chi2=chi2,
+                       reason=f"significant and determinable; the halves cannot check it: a half sees the shift at "
+                              f"chi2 {power:.1f}, and they agree (chi2 {chi2:.1f})")
     try:
         info_a, info_b = np.linalg.inv(ca), np.linalg.inv(cb)
         cov_mean = np.linalg.inv(info_a + info_b)
