@@ -134,8 +134,8 @@ def test_a_half_that_sees_the_principal_point_less_well_counts_for_less():
 
 
 @pytest.mark.parametrize("std_b, reason", [
-    (8.0, "significant and determinable; the halves cannot check it: a half sees the shift at chi2 0.5, "
-          "and they agree (chi2 1.7)"),
+    (8.0, ("significant and determinable; the halves cannot check it: a half sees the shift at chi2 0.5, "
+           "and they agree (chi2 1.7)")),
     (2.0, "not reproducible"),
     (1.0, "not reproducible"),
 ])
