@@ -34,12 +34,13 @@ a split-sample check:
   covariance cannot see because it knows only the modelled parameters, shows up as estimates
   that depend on where the photos were taken from, and the widened uncertainty swallows it.
   Where a half alone could not call the whole model's shift ``s`` significant (``s^T C_half^-1
-  s`` at most the same quantile), the halves can confirm it only by disagreeing: if they agree
-  within their uncertainty (the chi-square of their difference at most the quantile too), they
-  are evidence neither for nor against the shift, and the step abstains: the first two
-  decide.  An object ring photographed in few, wide steps is such a case: each half loses the
-  ring's closure, on which the principal point rests.  Halves that disagree beyond it show a
-  shift that depends on the viewpoint, seen or not, and the weighted mean decides as above.
+  s`` at most the same quantile), the halves cannot confirm the shift.  They can still
+  contradict it: halves that disagree beyond their uncertainty (the chi-square of their
+  difference above the quantile too) show a shift that depends on the viewpoint, and the
+  weighted mean decides as above.  Halves that agree within it are evidence neither for nor
+  against the shift: the step abstains and the first two decide.  An object ring photographed
+  in few, wide steps is such a case: each half loses the ring's closure, on which the
+  principal point rests.
 
 A camera that fails keeps its nominal principal point in that final BA.
 Nothing here depends on the scene: the test reads only the camera's estimates and their
