@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("pycolmap")  # the script imports the peer's helpers
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_accuracy import downscaled_set, failures, gt_sets, ordinal, path_order, sparser_set, verdict  # noqa: E402
+from bench_accuracy import cropped_set, downscaled_set, failures, gt_sets, ordinal, path_order, sparser_set, verdict  # noqa: E402
 
 
 def _row(method: str, registered: str, auc1: float, auc5: float) -> dict:
@@ -127,6 +127,35 @@ def test_a_downscaled_set_reduces_each_image_keeps_its_exif_and_the_ground_truth
         assert np.abs(np.asarray(b, dtype=float) - box).max() <= 0.5
     assert (folder / "gt" / "cameras_gt_opencv.txt").read_text() == table
     assert gt_sets(tmp_path / "small") == ["door_1of2"]
+
+
+def test_a_cropped_set_keeps_each_images_centre_drops_its_exif_and_keeps_the_ground_truth(tmp_path):
+    """The central half of each image in both directions, pixel for pixel (a long lens: the
+    same focal length in pixels, half the field of view), without the EXIF whose 35 mm
+    equivalent described the whole view; the same pose table."""
+    from PIL import Image
+
+    from sfm.io.exif import exif_tags
+
+    data = tmp_path / "data"
+    (data / "ring" / "images").mkdir(parents=True)
+    (data / "ring" / "gt").mkdir()
+    rng = np.random.default_rng(1)
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = 28
+    Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)).save(data / "ring" / "images" / "a.jpg",
+                                                                            exif=exif)
+    pixels = rng.integers(0, 255, (41, 30), dtype=np.uint8)
+    Image.fromarray(pixels).save(data / "ring" / "images" / "b.png")
+    table = "# IMAGE_NAME WIDTH HEIGHT FX FY CX CY QW QX QY QZ TX TY TZ\nb.png 30 41 50 50 14.5 20 1 0 0 0 0 0 0\n"
+    (data / "ring" / "gt" / "cameras_gt_opencv.txt").write_text(table)
+    assert cropped_set(data, "ring", 2, tmp_path / "long") == "ring_crop1of2"
+    folder = tmp_path / "long" / "ring_crop1of2"
+    with Image.open(folder / "images" / "a.jpg") as a, Image.open(folder / "images" / "b.png") as b:
+        assert (a.format, a.size, b.format, b.size) == ("JPEG", (40, 30), "PNG", (15, 20))
+        assert not exif_tags(a)
+        np.testing.assert_array_equal(np.asarray(b), pixels[10:30, 7:22])  # rows (41 - 20) // 2, columns (30 - 15) // 2
+    assert (folder / "gt" / "cameras_gt_opencv.txt").read_text() == table
 
 
 @pytest.mark.parametrize("n, suffix", [(2, "nd"), (3, "rd"), (4, "th"), (11, "th"), (12, "th"), (21, "st"), (22, "nd")])

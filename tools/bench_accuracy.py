@@ -2,7 +2,7 @@
 
     python tools/bench_accuracy.py [--data ../shared/data] [--sets lund_door temple_ring ...]
                                    [--out DIR] [--recording] [--no-colmap-frontend] [--no-per-image]
-                                   [--every N [N ...]] [--downscale F [F ...]]
+                                   [--every N [N ...]] [--downscale F [F ...]] [--crop F [F ...]]
 
 For every set (default: every folder of ``--data`` with ``images/`` and a pose table
 ``gt/cameras_gt_opencv.txt``), on the same images and evaluated the same way
@@ -39,9 +39,15 @@ Fewer, wider-spaced views of the same scene: the condition of a narrow-field obj
 photographed in fewer steps, which the shared sets do not hold.
 
 ``--downscale 2`` also runs the main table's methods on each set at half resolution (each
-image box-filtered by 2 in both directions, its EXIF kept; ``<out>/downscaled/<set>_1of2``), and
+image box-filtered by 2 in both directions, its EXIF kept; ``<out>/transformed/<set>_1of2``), and
 ``--every`` on those too: fewer and coarser features on the same views, the condition of weakly
 textured or low-resolution photos.
+
+``--crop 2`` also runs them on each set's images cropped to their central half in both
+directions, without EXIF (``<out>/transformed/<set>_crop1of2``), and ``--every`` on those: the
+same focal length in pixels over a narrower field of view, with the focal length's 1.2 x
+longer side guess twice as far from it as on the whole images: the condition of a narrow-field
+object ring photographed with a long lens and no EXIF.
 
 A set whose ``gt/`` also holds projection matrices (``*P_matrices.txt``, read by
 :func:`sfm.evaluation.ground_truth.read_projection_matrices`) gets a second table: the same
@@ -126,14 +132,12 @@ def sparser_set(data: Path, name: str, every: int, start: int, root: Path) -> st
     return sub
 
 
-def downscaled_set(data: Path, name: str, factor: int, root: Path) -> str:
-    """``data/name`` with every image reduced by ``factor`` in both directions (Pillow's box
-    filter, the same file format, the EXIF kept: a 35 mm equivalent focal length still holds)
-    and the same GT table (poses do not depend on the resolution), written as
-    ``root/<name>_1of<factor>``; its name under ``root``."""
+def transformed_set(data: Path, name: str, sub: str, root: Path, transform, keep_exif: bool) -> str:
+    """``data/name`` with every image replaced by ``transform(image)`` (a Pillow image; the same
+    file format, the EXIF kept only with ``keep_exif``) and the same GT table (the poses do not
+    depend on it), written as ``root/sub``; ``sub``."""
     from PIL import Image
 
-    sub = f"{name}_1of{factor}"
     fresh(root / sub)
     (root / sub / GT_TABLE.parent).mkdir(parents=True)
     shutil.copy(data / name / GT_TABLE, root / sub / GT_TABLE)
@@ -142,11 +146,32 @@ def downscaled_set(data: Path, name: str, factor: int, root: Path) -> str:
         target = root / sub / "images" / path.relative_to(source)
         target.parent.mkdir(parents=True, exist_ok=True)
         with Image.open(path) as im:
-            exif = im.info.get("exif")
-            small = im.reduce(factor)
+            exif = im.info.get("exif") if keep_exif else None
             extra = {"quality": 95} if im.format == "JPEG" else {}
-            small.save(target, format=im.format, **({"exif": exif} if exif else {}), **extra)
+            transform(im).save(target, format=im.format, **({"exif": exif} if exif else {}), **extra)
     return sub
+
+
+def downscaled_set(data: Path, name: str, factor: int, root: Path) -> str:
+    """``data/name`` with every image reduced by ``factor`` in both directions (Pillow's box
+    filter, the EXIF kept: a 35 mm equivalent focal length still holds), written as
+    ``root/<name>_1of<factor>`` (:func:`transformed_set`); its name under ``root``."""
+    return transformed_set(data, name, f"{name}_1of{factor}", root, lambda im: im.reduce(factor), keep_exif=True)
+
+
+def cropped_set(data: Path, name: str, factor: int, root: Path) -> str:
+    """``data/name`` with every image cropped to its central ``1/factor`` in both directions: the
+    same focal length in pixels over a field of view ``factor`` times narrower, as a longer lens
+    would see.  The EXIF is dropped (its 35 mm equivalent would describe the uncropped view), so
+    the focal length starts from the 1.2 x longer side guess, ``factor`` times shorter than the
+    set's own guess: a long lens without EXIF.  Written as ``root/<name>_crop1of<factor>``
+    (:func:`transformed_set`); its name under ``root``."""
+    def crop(im):
+        w, h = im.size
+        left, top = (w - w // factor) // 2, (h - h // factor) // 2
+        return im.crop((left, top, left + w // factor, top + h // factor))
+
+    return transformed_set(data, name, f"{name}_crop1of{factor}", root, crop, keep_exif=False)
 
 
 def evaluate_row(method: str, model_dir: Path | None, seconds: float, gt: dict) -> dict:
@@ -324,12 +349,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--downscale", type=int, nargs="+", default=[], metavar="F",
                         help="also each set with its images reduced F times in both directions, and --every on "
                         "those (main table's methods only)")
+    parser.add_argument("--crop", type=int, nargs="+", default=[], metavar="F",
+                        help="also each set with its images cropped to their central 1/F in both directions and "
+                        "no EXIF (a long lens), and --every on those (main table's methods only)")
     add_page_arguments(parser)
     args = parser.parse_args(argv)
     if any(n < 2 for n in args.every):
         parser.error("--every takes integers of at least 2")
     if any(f < 2 for f in args.downscale):
         parser.error("--downscale takes integers of at least 2")
+    if any(f < 2 for f in args.crop):
+        parser.error("--crop takes integers of at least 2")
     logging.basicConfig(level=logging.WARNING, format="%(levelname).1s %(name)s: %(message)s")
     import os
 
@@ -356,13 +386,13 @@ def main(argv: list[str] | None = None) -> int:
         (out / name / "rows.json").write_text(json.dumps({"rows": rows, "notes": notes, "other_gt": others,
                                                           "per_image": per_image}, indent=1))
         variants = [(args.data, name, name)]
-        for factor in args.downscale:
-            sub = downscaled_set(args.data, name, factor, out / "downscaled")
-            rows, notes, _ = bench_set(out / "downscaled", sub, out / "downscaled_runs", threads, args.recording,
+        for factor, make, label in ([(f, downscaled_set, f"{name} at 1/{f} resolution") for f in args.downscale]
+                                    + [(f, cropped_set, f"{name} cropped to its central 1/{f}") for f in args.crop]):
+            sub = make(args.data, name, factor, out / "transformed")
+            rows, notes, _ = bench_set(out / "transformed", sub, out / "transformed_runs", threads, args.recording,
                                        not args.no_colmap_frontend, context)
-            label = f"{name} at 1/{factor} resolution"
-            sections.append(variant_section(label, rows, notes, out / "downscaled_runs" / sub))
-            variants.append((out / "downscaled", sub, label))
+            sections.append(variant_section(label, rows, notes, out / "transformed_runs" / sub))
+            variants.append((out / "transformed", sub, label))
         num_images = len(read_gt_table(args.data / name / GT_TABLE))
         for root, source, label in variants:
             for every, start in [(n, k) for n in args.every if num_images // n >= args.every_min_images for k in range(n)]:
@@ -382,8 +412,9 @@ def main(argv: list[str] | None = None) -> int:
              "(internet photos' conditions: each image's intrinsics estimated on their own) and COLMAP's "
              "mappers on its database; the acceptance verdicts are the main tables'. The tables 'every N-th image "
              "along the camera path' (`--every`) run the main table's methods on a sparser version of the set, "
-             "the tables 'at 1/F resolution' (`--downscale`) on the set's images reduced F times (and `--every` "
-             "on those).")
+             "the tables 'at 1/F resolution' (`--downscale`) on the set's images reduced F times, the tables "
+             "'cropped to its central 1/F' (`--crop`) on their central parts without EXIF, a long lens whose focal "
+             "length starts from a guess F times too short (and `--every` on both).")
     publish(args, "accuracy", "Pose accuracy on the photo sets with ground truth", intro + "\n\n" + "\n\n".join(sections))
     return 0
 
