@@ -323,3 +323,76 @@ def test_the_final_ba_adjusts_poses_with_three_view_points_and_re_estimates_the_
     two_view = np.array([len(model.points3D[p].track) == 2 for p in pids])
     assert two_view.sum() > 100  # the orbit's short tracks stay in the model
     assert np.median(errors[two_view]) < 1.5 * np.median(errors[~two_view])
+
+
+def _narrow_ring_with_a_short_guess(tmp_path, shortened_by: float):
+    """A ring of 12 narrow views (focal length twice the image width, 400 points per view) whose
+    database gives a focal length ``shortened_by`` times too short and not from EXIF (a guess):
+    the ground truth and the payload."""
+    import sqlite3
+
+    from sfm.evaluation.ground_truth import gt_from_reconstruction
+    from sfm.synthetic.matching import simulate_matching, write_database
+    from sfm.synthetic.scenes import gt_reconstruction, make_scene
+
+    opts = SynthOptions(scene="orbit", num_images=12, observations_per_image=400, pixel_noise=1.0,
+                        focal=2 * 1280.0, seed=0)
+    scene = make_scene(opts)
+    write_database(scene, simulate_matching(scene, opts), tmp_path / "database.db", camera_model="SIMPLE_RADIAL")
+    with sqlite3.connect(tmp_path / "database.db") as con:
+        camera_id, blob = con.execute("SELECT camera_id, params FROM cameras").fetchone()
+        params = np.frombuffer(blob, dtype=np.float64).copy()
+        params[0] /= shortened_by
+        con.execute("UPDATE cameras SET params = ?, prior_focal_length = 0 WHERE camera_id = ?",
+                    (params.tobytes(), camera_id))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    return gt_from_reconstruction(gt_reconstruction(scene)), payload
+
+
+def test_a_model_whose_guessed_focal_length_moved_far_is_grown_again_from_it(tmp_path, caplog):
+    """The ring's focal length guessed 4 times too short: grown at it, the model stops at 4 of
+    its 12 views (poses a few degrees off) while its final BA finds a focal length 3.5 times the
+    start; grown again from that value it holds all 12 views with the true focal length."""
+    import logging
+
+    from sfm.evaluation.metrics import evaluate
+
+    gt, payload = _narrow_ring_with_a_short_guess(tmp_path, 4.0)
+    with caplog.at_level(logging.INFO, logger="sfm.mapper.incremental"):
+        models = incremental.reconstruct_incremental(payload, MapperOptions().for_model(True))
+    assert any("refined a guessed focal length 640 -> " in r.getMessage() and "grown again" in r.getMessage()
+               for r in caplog.records)
+    assert len(models[0].registered_image_ids) == 12
+    [camera] = models[0].cameras.values()
+    assert abs(camera.params[0] / 2560.0 - 1) < 0.01
+    assert evaluate(models[0], gt).auc[1.0] > 0.7
+
+
+def test_only_a_guessed_focal_length_of_a_camera_with_three_images_that_moved_past_the_ratio_counts(tmp_path):
+    """``MapperState.guessed_focal_moves``: the current focal length against the one the model
+    started from (the prior, or the value of a restart), beyond the ratio either way; not for a
+    focal length from EXIF, nor for a camera of fewer than three registered images."""
+    _, payload = _narrow_ring_with_a_short_guess(tmp_path, 4.0)
+    state = MapperState(payload, MapperOptions())
+    assert state.start_focal(0) == 640.0
+    state.registered[:3] = True
+    for focal, moved in ((2000.0, True), (1500.0, False), (640.0 / 3.1, True), (640.0 * 3.0, False)):
+        state.set_focal(0, focal)
+        assert state.guessed_focal_moves(3.0) == ({0: focal} if moved else {}), focal
+    state.set_focal(0, 2000.0)
+    state.registered[2] = False
+    assert state.guessed_focal_moves(3.0) == {}  # two images: a camera per image searches its own
+    state.registered[2] = True
+    state.restart_model({0: 2000.0})
+    assert state.start_focal(0) == 2000.0 and state.camera_focal(0) == 2000.0 and not state.registered.any()
+    state.registered[:3] = True
+    assert state.guessed_focal_moves(3.0) == {}
+    state.close_model()
+    assert state.start_focal(0) == 640.0 and state.camera_focal(0) == 640.0  # the next model starts from the prior
+    from dataclasses import replace
+
+    exif = MapperState(replace(payload, cameras={k: replace(c, prior_focal_length=True)
+                                                 for k, c in payload.cameras.items()}), MapperOptions())
+    exif.registered[:3] = True
+    exif.set_focal(0, 2000.0)
+    assert exif.guessed_focal_moves(3.0) == {}

@@ -112,6 +112,12 @@ class Growth:
             translations=state.t[posed].astype(np.float32), ba_rms_px=float(ba_rms_px),
             points=state.track_xyz[valid].astype(np.float32), colors=self._track_rgb[valid]))
 
+    def discard(self) -> None:
+        """The current model's attempt is dropped (it is grown again from other starting values):
+        its steps go."""
+        if self.models and not self.models[-1].size:
+            self.models.pop()
+
     def close(self, state: MapperState, calibration: list[str] = ()) -> None:
         """The current model is finished: note why each image outside it is left out, and
         ``calibration``, what its final BAs refined of each camera

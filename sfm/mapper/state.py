@@ -92,6 +92,7 @@ class MapperState:
         # de-register the images of cameras whose intrinsics became degenerate (off when no
         # registration follows, as in the refinement of merged poses)
         self.camera_filter = True
+        self.start_focals: dict[int, float] = {}  # camera index -> focal length a new model starts from
         self._reset_model()
         log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
                   len(self.pair_matches), self.num_tracks, len(self.obs_image))
@@ -120,6 +121,9 @@ class MapperState:
         self.fail_visible = np.zeros(n, dtype=np.int64)
         self.structureless_failed: dict[int, int] = {}
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
+        for c, focal in self.start_focals.items():
+            spec = model_spec(self.priors[c].model)
+            self.params[c][list(spec.focal_idx)] *= focal / self.camera_focal(c)
         self._update_normalised()
 
     def set_camera_params(self, params_by_key: dict[int, np.ndarray]) -> None:
@@ -221,7 +225,32 @@ class MapperState:
 
     def close_model(self) -> None:
         self.used |= self.registered
+        self.start_focals = {}
         self._reset_model()
+
+    def restart_model(self, focals: dict[int, float]) -> None:
+        """Discard the current model, its images free again, and start the next one with the
+        cameras of ``focals`` (camera index -> focal length) at those focal lengths."""
+        self.start_focals = dict(focals)
+        self._reset_model()
+
+    def start_focal(self, c: int) -> float:
+        """The focal length camera ``c`` started the current model from."""
+        prior = self.priors[c]
+        return self.start_focals.get(c, float(np.mean(focal_lengths(prior.model, prior.params))))
+
+    def guessed_focal_moves(self, ratio: float) -> dict[int, float]:
+        """The cameras whose focal length the model started from a guess (no EXIF, not given) and
+        whose current focal length differs from that start by more than ``ratio`` (either way),
+        among those with at least three registered images (a camera per image has its focal
+        length searched when it registers): camera index -> current focal length."""
+        moved = {}
+        for c, prior in enumerate(self.priors):
+            if prior.fixed or prior.prior_focal_length or np.sum(self.registered & (self.cam_index == c)) < 3:
+                continue
+            if abs(np.log(self.camera_focal(c) / self.start_focal(c))) > np.log(ratio):
+                moved[c] = self.camera_focal(c)
+        return moved
 
     def _update_normalised(self, cameras=None) -> None:
         """The normalised coordinates of the rows of ``cameras`` (None: every camera) from their
