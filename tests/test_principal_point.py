@@ -199,6 +199,20 @@ def test_auto_finds_an_off_centre_principal_point_and_holds_a_centred_one(tmp_pa
     assert rot_found < 1.5 * rot_c         # found, they are as good as on the centred scene
 
 
+def _held_and_auto(tmp_path, scene, pairs, caplog) -> tuple[dict, list[str]]:
+    """``scene``'s matches mapped with the principal point held ("focal_radial") and with "auto":
+    each mode's model, and the principal point tests "auto" logged."""
+    models = {}
+    for mode in ("focal_radial", "auto"):
+        ws = tmp_path / mode
+        ws.mkdir()
+        write_database(scene, pairs, ws / "database.db", camera_model="SIMPLE_RADIAL")
+        with caplog.at_level(logging.INFO, logger="sfm.mapper.self_calibration"):
+            run_map(ws, MapperOptions(intrinsics_refinement=mode), executor=LocalExecutor(1))
+        models[mode] = read_model(ws / "sparse" / "0")
+    return models, [r.getMessage() for r in caplog.records if "principal point shift" in r.getMessage()]
+
+
 def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, caplog):
     """The keypoints of the images at one end of the orbit moved by (20, -12) px, the others by
     (-4, 2): the whole model calls a shift significant, but it is not one constant of the camera
@@ -212,15 +226,7 @@ def test_auto_holds_a_shift_that_only_half_of_the_viewpoints_show(tmp_path, capl
     one_end = split_halves(centers)
     moved = replace(scene, keypoints=[k + np.array([20.0, -12.0] if one_end[i] else [-4.0, 2.0])
                                       for i, k in enumerate(scene.keypoints)])
-    models = {}
-    for mode in ("focal_radial", "auto"):
-        ws = tmp_path / mode
-        ws.mkdir()
-        write_database(moved, pairs, ws / "database.db", camera_model="SIMPLE_RADIAL")
-        with caplog.at_level(logging.INFO, logger="sfm.mapper.self_calibration"):
-            run_map(ws, MapperOptions(intrinsics_refinement=mode), executor=LocalExecutor(1))
-        models[mode] = read_model(ws / "sparse" / "0")
-    tests = [r.getMessage() for r in caplog.records if "principal point shift" in r.getMessage()]
+    models, tests = _held_and_auto(tmp_path, moved, pairs, caplog)
     assert tests and all(": held (" in t for t in tests), tests
     assert any("held (not reproducible" in t for t in tests), tests  # the screen passed, the halves did not
     [held], [auto] = models["focal_radial"].cameras.values(), models["auto"].cameras.values()
@@ -243,18 +249,12 @@ def test_auto_refines_a_narrow_rings_principal_point_that_its_halves_cannot_chec
     gt = gt_from_reconstruction(gt_reconstruction(scene))
     moved = replace(scene, keypoints=[k + np.array([15.0, -8.0]) for k in scene.keypoints])
     centre = np.array([(scene.width - 1) / 2, (scene.height - 1) / 2])
+    models, tests = _held_and_auto(tmp_path, moved, pairs, caplog)
     runs = {}
-    for mode in ("focal_radial", "auto"):
-        ws = tmp_path / mode
-        ws.mkdir()
-        write_database(moved, pairs, ws / "database.db", camera_model="SIMPLE_RADIAL")
-        with caplog.at_level(logging.INFO, logger="sfm.mapper.self_calibration"):
-            run_map(ws, MapperOptions(intrinsics_refinement=mode), executor=LocalExecutor(1))
-        recon = read_model(ws / "sparse" / "0")
+    for mode, recon in models.items():
         assert len(recon.registered_image_ids) == 24
         [cam] = recon.cameras.values()
         runs[mode] = (np.asarray(cam.params)[1:3] - centre, evaluate(recon, gt).auc[1.0])
-    tests = [r.getMessage() for r in caplog.records if "principal point shift" in r.getMessage()]
     assert tests and all("refined (significant and determinable; the halves cannot check it" in t for t in tests), tests
     (pp_held, auc_held), (pp_found, auc_found) = runs["focal_radial"], runs["auto"]
     np.testing.assert_array_equal(pp_held, [0.0, 0.0])
