@@ -47,11 +47,10 @@ EARLY_GLOBAL_BA_IMAGES = 10
 # A model whose final BAs moved a guessed focal length (no EXIF: 1.2 x the longer side) by more
 # than this factor, either way, is grown again from the refined value.  Its registrations and
 # filters were decided at a focal length the model rejects, and a growing model cannot always
-# correct that: on a narrow-field ring started 4 times too short, the final BA stops at a
-# focal length 15% short with a radial distortion of -0.76, its poses far off.  Started 2 times
-# off either way, the same ring converges to the true focal length: a lens twice as long as
-# the guess is common (a short telephoto), and such a model, whose final focal length lands
-# near 2 times the start, is not grown again.
+# correct that: a narrow-field ring grown from a guess several times too short can end at a
+# focal length traded against a strong radial distortion, its poses far off.  A lens about
+# twice as long as the guess is common (a short telephoto) and its models grow to the right
+# focal length; the factor lies above it, so that they are not grown again for nothing.
 FOCAL_RESTART_RATIO = 3.0
 # Regrowths of one model at most (each starts from the focal length the previous attempt refined).
 MAX_FOCAL_RESTARTS = 2
