@@ -35,9 +35,9 @@ Design, the loop (``sfm.mapper.incremental``):
 6. When no image registers any more: final BAs to a tighter tolerance, and a new model from the
    remaining images; several models are a result, not an error.  A model whose final BAs
    moved a guessed focal length (no EXIF) more than 3 times away is grown again from the
-   refined value (at most twice): it was grown at a focal length it rejects.  The final BAs pose the cameras
-   with the points three images or more see (a point two images see cannot expose a wrong
-   match; it is re-estimated afterwards, unless an image needs it).  They refine what the
+   refined value (at most twice): it was grown at a focal length it rejects.  The final BAs
+   pose the cameras with the points three images or more see (a point two images see cannot
+   expose a wrong match; it is re-estimated afterwards, unless an image needs it).  They refine what the
    photos determine of each camera (``intrinsics_refinement`` "auto", the default): its
    distortion only when its difference from the nominal values is significant at 3 sigma (held
    otherwise: a nadir block trades an undetermined distortion for a bent block); its principal

@@ -138,9 +138,8 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     estimated (too few images, a singular system).  Where a half has no power to see the
     shift, ``s^T C_a^-1 s`` or ``s^T C_b^-1 s`` of the whole model's shift ``s`` at most
     :data:`SIGNIFICANCE_CHI2`, and the halves agree, ``d^T (C_a + C_b)^-1 d`` at most the same,
-    ``test`` stands (refined).  Otherwise refined only if the halves'
-    weighted mean shift from the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with
-    ``C_m = (C_a^-1 + C_b^-1)^-1``, is significant with ``C_m`` times the squared Birge ratio
+    ``test`` stands (refined).  Otherwise refined only if the halves' weighted mean shift from
+    the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with ``C_m = (C_a^-1 + C_b^-1)^-1``, is significant with ``C_m`` times the squared Birge ratio
     ``max(1, d^T (C_a + C_b)^-1 d / 2)`` of their difference ``d = p_a - p_b``:
     ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`.  Halves of equal covariance give the plain
     mean with ``C_m = C_a / 2``."""

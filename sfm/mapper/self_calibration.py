@@ -4,8 +4,9 @@ the decisions of self-calibration, and their record for the recording.
 The focal length is always refined.  The distortion of a camera is refined when the model
 determines it (``sfm.mapper.distortion``), its principal point when the model determines its
 shift from the nominal value and two independent halves of the photos reproduce it, or are
-each too weak to check it and do not contradict each other (``sfm.mapper.principal_point``).  Both tests read the Gauss-Newton step a BA freeing those
-parameters would take at the current state, with its covariance
+each too weak to check it and do not contradict each other (``sfm.mapper.principal_point``).
+Both tests read the Gauss-Newton step a BA freeing those parameters would take at the current
+state, with its covariance
 (``backend.bundle_adjustment.calibration_step``), so they run before the final BA they decide,
 on the growing model's track subset (each image's best track per grid cell, so every image and
 every part of it counts): its covariance is larger than the full problem's, a conservative

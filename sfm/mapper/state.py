@@ -122,8 +122,7 @@ class MapperState:
         self.structureless_failed: dict[int, int] = {}
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         for c, focal in self.start_focals.items():
-            spec = model_spec(self.priors[c].model)
-            self.params[c][list(spec.focal_idx)] *= focal / self.camera_focal(c)
+            self.params[c] = self._with_focal(c, focal)
         self._update_normalised()
 
     def set_camera_params(self, params_by_key: dict[int, np.ndarray]) -> None:
@@ -151,10 +150,13 @@ class MapperState:
 
     def set_focal(self, c: int, focal: float) -> None:
         """Camera ``c`` with focal length ``focal`` (both focal lengths scaled alike)."""
-        spec = model_spec(self.priors[c].model)
+        self.set_intrinsics(c, self._with_focal(c, focal))
+
+    def _with_focal(self, c: int, focal: float) -> np.ndarray:
+        """Camera ``c``'s parameters with its focal lengths scaled alike to mean ``focal``."""
         params = np.array(self.params[c], dtype=np.float64)
-        params[list(spec.focal_idx)] *= focal / self.camera_focal(c)
-        self.set_intrinsics(c, params)
+        params[list(model_spec(self.priors[c].model).focal_idx)] *= focal / self.camera_focal(c)
+        return params
 
     def set_intrinsics(self, c: int, params: np.ndarray) -> None:
         """Camera ``c`` with ``params`` (normalised coordinates follow)."""
