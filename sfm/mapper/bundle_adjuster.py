@@ -96,10 +96,13 @@ class BundleAdjuster:
         s.filter_observations(tracks)
 
     def global_(self, final: bool = False, tolerance: float = FINAL_TOLERANCE,
-                loss_scale: float | None = None) -> None:
+                loss_scale: float | None = None, decide: bool = True) -> None:
         """BA of every registered image: on a track subset while the model grows, on every
         track when ``final`` (LM stopping at ``tolerance``), with the robust loss at
         ``loss_scale`` pixels (None: ``opts.global_loss_scale``, see ``MapperOptions``).
+        Under ``intrinsics_refinement="auto"`` a final BA's self-calibration tests decide what
+        it refines of each camera; ``decide=False`` skips them and refines what earlier tests
+        decided (``SelfCalibration.decided_levels``).
         Then COLMAP's filtering: degenerate cameras, observations, points."""
         s = self.state
         loss_scale = self._global_loss_scale() if loss_scale is None else loss_scale
@@ -110,7 +113,8 @@ class BundleAdjuster:
             parts = self._num_parts(posing)
             refine = self.opts.intrinsics_refinement
             if refine == "auto":
-                refine = self.calibration.final_levels(free, posing, loss_scale)
+                refine = (self.calibration.final_levels(free, posing, loss_scale) if decide
+                          else self.calibration.decided_levels(free))
             self._adjust(free, posing, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
                          on_iteration=_report_final_ba(len(free)))
             if parts > 1:

@@ -146,6 +146,24 @@ class SelfCalibration:
             s.set_camera_params(held)  # one update of the normalised coordinates
         return levels
 
+    def decided_levels(self, free: np.ndarray) -> list[str]:
+        """What a final BA of the images ``free`` refines of each camera without testing: the
+        focal length, and the distortion and the principal point where they are off their
+        nominal values, i.e. where earlier tests refined them (in this model, or in the models
+        whose estimates a merge pooled).  For a BA from a state that is not a BA's optimum, where
+        the tests' linearisation would not hold (a merged model's poses come from similarity
+        transforms)."""
+        s = self.state
+        levels = ["focal_radial"] * len(s.priors)
+        for c in np.unique(s.cam_index[free]).tolist():
+            prior = s.priors[c]
+            if prior.fixed:
+                continue
+            spec, nominal = model_spec(prior.model), np.asarray(prior.params, float)
+            off = s.params[c] != nominal
+            levels[c] = refine_level(bool(np.any(off[list(spec.extra_idx)])), bool(np.any(off[list(spec.pp_idx)])))
+        return levels
+
     def halves(self, camera: int, free: np.ndarray, tracks: np.ndarray, loss_scale: float):
         """The split-sample step of the principal point test (``principal_point.confirm_by_halves``):
         camera ``camera``'s images among ``free``, split in two by :func:`split_halves`; each half

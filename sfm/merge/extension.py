@@ -34,7 +34,7 @@ from sfm.mapper.state import MapperState
 from sfm.merge.alignment import anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph
 from sfm.merge.options import MergeOptions
-from sfm.merge.refinement import alternate_until_converged
+from sfm.merge.refinement import alternate_until_converged, refine_merged
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,7 @@ def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str,
     re-estimated with their cameras held.  ``full_ba``, or a region of at least
     :data:`FULL_BA_REGION_SHARE` of the model: the global BA of the ``merge`` stage
     (:func:`sfm.merge.refinement.refine_with_poses`) from ``pooled_params`` (None:
-    ``camera_params``), every camera's self-calibration tested again."""
+    ``camera_params``), every camera's self-calibration tested again (``refine_merged``)."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # nothing would register the dropped images again
     state.release_pairs()
@@ -105,8 +105,7 @@ def refine_extension(payload: MapperInput, opts: MapperOptions, poses: dict[str,
         if pooled_params is not None:
             state.set_camera_params(pooled_params)
             state.retriangulate()
-        adjuster.calibration.retest()
-        alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
+        refine_merged(state, adjuster, opts.loss_scale)
         return to_reconstruction(state)
     region = np.zeros(0, np.int64)
 

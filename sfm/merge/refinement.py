@@ -11,7 +11,9 @@ transforms, not from a BA over the merged tracks, so the first triangulation rej
 that the first BA brings back within reach: on clusters joined through thin overlaps one
 alternation is not enough.  The merged model's final BAs decide each camera's distortion and
 principal point again, on all its photos (``SelfCalibration.retest``): each cluster decided on
-its part of them.
+its part of them.  They do so only once the merged poses fit the merged tracks
+(:func:`refine_merged`): the tests read the step and covariance of a BA linearised at the
+current state, which the similarity transforms leave off a BA's optimum.
 """
 
 from __future__ import annotations
@@ -57,14 +59,28 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     state.set_camera_params(camera_params)
     state.set_poses(poses)
     adjuster = BundleAdjuster(state)
-    adjuster.calibration.retest()  # each cluster decided on its part of the photos; the merged model on all
     if points is not None:
         log.info("%s: %d tracks start from the local models' points", state.payload.label, state.seed_points(*points))
     state.retriangulate()
-    alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=opts.loss_scale))
+    refine_merged(state, adjuster, opts.loss_scale)
     if calibration is not None:
         calibration.extend(adjuster.calibration.report())
     return to_reconstruction(state)
+
+
+def refine_merged(state: MapperState, adjuster: BundleAdjuster, loss_scale: float) -> None:
+    """Global BAs of a merged model with the robust loss at ``loss_scale`` pixels, alternating
+    with re-triangulation (:func:`alternate_until_converged`) twice: first with what the local
+    models decided of each camera (``decide=False``), which fits the poses the similarity
+    transforms gave to the merged tracks; then with every camera's self-calibration decided
+    again on all the photos (``SelfCalibration.retest``).  The tests linearise the BA at the
+    current state (``backend.bundle_adjustment.calibration_step``), which the first
+    alternation brings to a BA's optimum: from the merged poses a few pixels off, the
+    principal point's covariance comes out several times too wide and a shift the photos
+    show is held."""
+    alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=loss_scale, decide=False))
+    adjuster.calibration.retest()
+    alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=loss_scale))
 
 
 def alternate_until_converged(state: MapperState, adjust) -> int:
