@@ -32,8 +32,11 @@ Design, the loop (``sfm.mapper.incremental``):
    and filtering whenever the model has grown by ``global_ba_ratio`` (1.2), and after every
    image while the model is young.  A camera whose refined intrinsics leave the range a lens can
    have takes its images out of the model (COLMAP's filter).
-6. When no image registers any more: final BAs to a tighter tolerance, and a new model from the
-   remaining images; several models are a result, not an error.  A model whose final BAs
+6. When no image registers any more: final BAs to a tighter tolerance, then an earlier model
+   of the cluster that shares no image with this one, but whose points its images see or the
+   other way round, joins it as a whole, registered by one similarity from all the rays
+   between the two (on PnP's terms), and the model grows on; otherwise a new model from the
+   remaining images: several models are a result, not an error.  A model whose final BAs
    moved a guessed focal length (no EXIF) more than 3 times away is grown again from the
    refined value (at most twice): it was grown at a focal length it rejects.  The final BAs
    pose the cameras with the points three images or more see (a point two images see cannot
@@ -66,6 +69,7 @@ Modules, in reading order:
 - ``sfm.mapper.initialization``: choosing and reconstructing the initial pair.
 - ``sfm.mapper.registration``: registering the next image by PnP.
 - ``sfm.mapper.structureless``: registering an image that sees too few points for PnP.
+- ``sfm.mapper.joining``: registering a finished model as a whole in the current one.
 - ``sfm.mapper.triangulation``: batched DLT, triangulation angles, point refinement.
 - ``sfm.mapper.bundle_adjuster``: ``BundleAdjuster``, which local, global and final BAs move
   what, and when they stop.

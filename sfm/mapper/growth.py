@@ -65,6 +65,7 @@ class ModelGrowth:
     registered: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # when it closed
     all_posed_at: int = 0  # images when the poses of all were last kept
     calibration: list[str] = field(default_factory=list)
+    absorbed: bool = False  # joined a later model as a whole (``sfm.mapper.joining``)
 
 
 @dataclass
@@ -132,11 +133,16 @@ class Growth:
         for i in np.flatnonzero(~state.registered):
             model.left_out[self.names[i]] = left_out_reason(state, int(i))
 
+    def absorb(self, index: int) -> None:
+        """Model ``index`` (of :attr:`models`), closed before, joined the current model as a
+        whole: it is no longer a model of its own."""
+        self.models[index].absorbed = True
+
     def finish(self, min_size: int) -> None:
         """Rank the kept models as :func:`reconstruct_incremental` sorts them (largest first,
         stable); attempts below ``min_size`` images stay at rank -1."""
         self.min_size = min_size
-        kept = [k for k, m in enumerate(self.models) if m.size >= min_size]
+        kept = [k for k, m in enumerate(self.models) if m.size >= min_size and not m.absorbed]
         for rank, k in enumerate(sorted(kept, key=lambda k: -self.models[k].size)):
             self.models[k].rank = rank
 
@@ -149,7 +155,7 @@ class Growth:
         largest = min(kept, key=lambda m: m.rank) if kept else None
         reasons = dict(largest.left_out) if largest is not None else {}
         for m in self.models:
-            if m.rank < 0 and m.size:
+            if m.rank < 0 and m.size and not m.absorbed:
                 for i in m.registered.tolist():
                     reasons[self.names[i]] = (f"registered only in a model of {m.size} images, fewer than the "
                                               f"{self.min_size} a kept model needs")

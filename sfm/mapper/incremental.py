@@ -9,9 +9,12 @@ tracks it newly sees (batched multi-view DLT with angle, depth and reprojection 
 local BA around it; run a global BA (and re-triangulation, and filtering of observations above
 ``max_reproj_error``) whenever the model has grown by ``global_ba_ratio``
 (``sfm.mapper.bundle_adjuster``).  When no image can be registered any more, the model is
-refined one last time and a new model is started from the remaining images: several models are
-a result, not an error.  A model whose last BAs moved a guessed focal length far
-(``FOCAL_RESTART_RATIO``) is first grown again from the refined value.
+refined one last time; a model finished earlier that shares no image with it, but whose points
+its images see or the other way round, then joins it as a whole (``sfm.mapper.joining``) and the
+model grows on;
+otherwise a new model is started from the remaining images: several models are a result, not an
+error.  A model whose last BAs moved a guessed focal length far (``FOCAL_RESTART_RATIO``) is
+first grown again from the refined value.
 
 State lives in flat numpy arrays over the observations of the tracks (``sfm.mapper.tracks``),
 so each step is vectorised; the bookkeeping is :class:`sfm.mapper.state.MapperState`.
@@ -26,9 +29,10 @@ import numpy as np
 from sfm.core import progress
 from sfm.core.model import Reconstruction
 from sfm.mapper.bundle_adjuster import FINAL_TOLERANCE, GROWING_TOLERANCE, BundleAdjuster
-from sfm.mapper.initialization import try_initial_pair
-from sfm.mapper.options import MapperOptions
 from sfm.mapper.growth import Growth
+from sfm.mapper.initialization import try_initial_pair
+from sfm.mapper.joining import FinishedModel, estimate_similarity, join
+from sfm.mapper.options import MapperOptions
 from sfm.mapper.output import to_reconstruction
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.registration import register_next
@@ -63,33 +67,24 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
     state = MapperState(payload, opts)
     adjuster = BundleAdjuster(state)
     models: list[Reconstruction] = []
+    finished: list[FinishedModel] = []  # the closed models, for a later model to join
     tried: set = set()
     min_size = opts.smallest_model(len(payload.names))
     num_images, closed = len(payload.names), 0  # images in the models already closed
     restarts = 0  # of the current model, from the focal lengths its last attempt refined
+
+    def report() -> None:
+        progress.report("registered", closed + state.num_registered, num_images)
+
     while len(models) < opts.max_num_models:
         tried_before = set(tried)
         if not try_initial_pair(state, tried):
             break
         adjuster.global_()
-        last_global = state.num_registered
-        progress.report("registered", closed + state.num_registered, num_images)
+        report()
         if growth is not None:
             growth.record(state, adjuster.last_rms, list(np.flatnonzero(state.registered)))
-        # A failed image is retried once it sees 20% more points (cheap on large clusters);
-        # when nothing else registers, with any growth (at most MAX_REG_TRIALS failures), then
-        # without PnP.
-        while register_next(state) or register_structureless(state):
-            state.triangulate_new(state.last_registered)
-            if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= EARLY_GLOBAL_BA_IMAGES:
-                adjuster.global_()  # covers what the local BA would adjust
-                state.retriangulate()
-                last_global = state.num_registered
-            else:
-                adjuster.local(state.last_registered)
-            progress.report("registered", closed + state.num_registered, num_images)
-            if growth is not None:
-                growth.record(state, adjuster.last_rms, [state.last_registered])
+        grow(state, adjuster, growth, report)
         final_refinement(state, adjuster)
         moved = state.guessed_focal_moves(FOCAL_RESTART_RATIO)
         if moved and restarts < MAX_FOCAL_RESTARTS:
@@ -104,14 +99,22 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
                 growth.discard()
             continue
         restarts = 0
+        while (joined := join_a_finished_model(state, adjuster, finished, growth)) is not None:
+            if joined.kept is not None:
+                models[:] = [m for m in models if m is not joined.kept]
+            closed -= joined.size
+            grow(state, adjuster, growth, report)
+            final_refinement(state, adjuster)
         model = to_reconstruction(state)
         n = state.num_registered
         closed += n
         if growth is not None:
             growth.record(state, adjuster.last_rms, [])  # the refined model
             growth.close(state, adjuster.calibration.report())
+        kept = model if n >= min_size else None
+        finished.append(FinishedModel.of(state, kept, len(growth.models) - 1 if growth is not None else None))
         state.close_model()
-        if n >= min_size:
+        if kept is not None:
             models.append(model)
             log.info("%s: model %d with %d images, %d points", payload.label, len(models) - 1, n, len(model.points3D))
         if int(np.sum(~state.used)) < 2:
@@ -120,6 +123,53 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
     if growth is not None:
         growth.finish(min_size)
     return models
+
+
+def grow(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, report) -> None:
+    """Register images into the current model while any passes (PnP, then structure-less),
+    triangulating what each newly sees, with a local BA after each and a global BA (and
+    re-triangulation) whenever the model has grown by ``global_ba_ratio``; ``report()`` after
+    each registration.  A failed image is retried once it sees 20% more points (cheap on large
+    clusters); when nothing else registers, with any growth (at most MAX_REG_TRIALS failures),
+    then without PnP."""
+    opts = state.opts
+    last_global = state.num_registered
+    while register_next(state) or register_structureless(state):
+        state.triangulate_new(state.last_registered)
+        if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= EARLY_GLOBAL_BA_IMAGES:
+            adjuster.global_()  # covers what the local BA would adjust
+            state.retriangulate()
+            last_global = state.num_registered
+        else:
+            adjuster.local(state.last_registered)
+        report()
+        if growth is not None:
+            growth.record(state, adjuster.last_rms, [state.last_registered])
+
+
+def join_a_finished_model(state: MapperState, adjuster: BundleAdjuster, finished: list[FinishedModel],
+                          growth: Growth | None) -> FinishedModel | None:
+    """Join the largest of the ``finished`` models that can be registered as one body in the
+    current model (``sfm.mapper.joining``), then a global BA and re-triangulation; the model
+    joined (removed from ``finished``), or None when none can be."""
+    for k in sorted(range(len(finished)), key=lambda k: -finished[k].size):
+        candidate = finished[k]
+        sim = estimate_similarity(state, candidate, state.opts.seed)
+        if sim is None:
+            continue
+        images = join(state, candidate, sim)
+        log.info("%s: the finished model of %d images joined the current one as a whole (scale %.3g, %d of %d rays "
+                 "between them within %g px): %d images", state.payload.label, candidate.size, sim.scale, sim.inliers,
+                 sim.rays, state.opts.abs_pose_max_error, state.num_registered)
+        del finished[k]
+        adjuster.global_()
+        state.retriangulate()
+        if growth is not None:
+            if candidate.growth_index is not None:
+                growth.absorb(candidate.growth_index)
+            growth.record(state, adjuster.last_rms, images.tolist())
+        return candidate
+    return None
 
 
 def final_refinement(state: MapperState, adjuster: BundleAdjuster) -> None:

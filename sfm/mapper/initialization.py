@@ -24,22 +24,28 @@ PLANAR_CONFIGS = (4, 5, 6)  # PLANAR, PANORAMIC, PLANAR_OR_PANORAMIC
 
 def relative_pose(state: MapperState, i: int, j: int, matches: np.ndarray, seed: int):
     """cam_j_from_cam_i (R, t with |t| = 1) from the matches' essential matrix, and its inliers."""
-    x1 = state.norm_of(i, matches[:, 0])
-    x2 = state.norm_of(j, matches[:, 1])
+    thr = state.opts.max_reproj_error / np.mean([state.focal(i), state.focal(j)])
+    return pose_from_essential(state.norm_of(i, matches[:, 0]), state.norm_of(j, matches[:, 1]), thr, seed)
+
+
+def pose_from_essential(x1: np.ndarray, x2: np.ndarray, threshold: float, seed: int):
+    """cam_2_from_cam_1 (R, t with |t| = 1) from the essential matrix of the matched normalised
+    coordinates ``x1``, ``x2`` (MAGSAC at ``threshold``, in normalised units), and a mask of
+    its inliers over the rows; None when fewer than 8 rows are usable or inliers."""
     # rows a degenerate camera cannot unproject count as outliers
+    num_rows = len(x1)
     kept = np.flatnonzero(np.isfinite(x1).all(axis=1) & np.isfinite(x2).all(axis=1))
     if len(kept) < 8:
         return None
     x1, x2 = x1[kept], x2[kept]
-    thr = state.opts.max_reproj_error / np.mean([state.focal(i), state.focal(j)])
     cv2.setRNGSeed(seed)
-    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=thr, maxIters=10000)
+    E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.9999, threshold=threshold, maxIters=10000)
     if E is None or E.shape != (3, 3):
         return None
     n, R, t, mask = cv2.recoverPose(E, x1, x2, np.eye(3), mask=mask.copy())
     if n < 8:
         return None
-    inl = np.zeros(len(matches), dtype=bool)
+    inl = np.zeros(num_rows, dtype=bool)
     inl[kept[mask.ravel() > 0]] = True
     return R, t.ravel() / np.linalg.norm(t), inl
 

@@ -225,6 +225,24 @@ class MapperState:
                 self.params[c] = np.asarray(p, dtype=np.float64)
             self._update_normalised(cams)
 
+    def load_model(self, registered: np.ndarray, R: np.ndarray, t: np.ndarray, track_xyz: np.ndarray,
+                   track_valid: np.ndarray, params: list[np.ndarray]) -> None:
+        """Make the model closed earlier with these arrays the current one (``sfm.mapper.joining``):
+        its images registered at their poses, its points, the cameras at ``params``; its
+        observations are inliers where they reproject within ``max_reproj_error``."""
+        start_focals = self.start_focals
+        self._reset_model()
+        self.start_focals = start_focals
+        self.registered[:] = registered
+        self.num_registered = int(registered.sum())
+        self.R[registered], self.t[registered] = R[registered], t[registered]
+        self.track_xyz[:], self.track_valid[:] = track_xyz, track_valid
+        self.params = [np.array(p, dtype=np.float64) for p in params]
+        self._update_normalised()
+        rows = np.flatnonzero(registered[self.obs_image] & track_valid[self.obs_track])
+        rows = rows[np.isfinite(self.obs_norm[rows]).all(axis=1)]
+        self.obs_inlier[rows] = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]]) < self.opts.max_reproj_error
+
     def close_model(self) -> None:
         self.used |= self.registered
         self.start_focals = {}

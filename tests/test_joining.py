@@ -1,0 +1,145 @@
+"""Joining a finished model to the model being grown as one rigid body (``sfm.mapper.joining``):
+the similarity between two models that share no image, from the rays between them, and the
+union it makes; what the acceptance terms refuse."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sfm.evaluation.ground_truth import read_gt_table
+from sfm.evaluation.metrics import evaluate
+from sfm.mapper import incremental
+from sfm.mapper.joining import FinishedModel, estimate_similarity, join
+from sfm.mapper.options import MapperOptions
+from sfm.mapper.state import MapperState
+from sfm.stages.payloads import load_payloads
+from sfm.stages.synth import run_synth
+from sfm.synthetic.options import SynthOptions
+
+# The finished model's frame: x_current = SCALE * ROTATION @ x_finished + SHIFT.
+SCALE = 2.5
+ROTATION = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
+SHIFT = np.array([1.0, -2.0, 0.5])
+
+
+def _orbit(tmp_path):
+    """A 16-image orbit's state and its true ``cam_from_world`` poses (state order)."""
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=4))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    state = MapperState(payload, MapperOptions())
+    gt = read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt")
+    R = np.stack([gt[n].rotation for n in state.names])
+    t = np.stack([gt[n].translation for n in state.names])
+    return state, R, t
+
+
+def _register(state: MapperState, images, R, t) -> None:
+    for i in images:
+        state.register(i, R[i], t[i])
+    state.retriangulate()
+
+
+def _two_models(tmp_path, finished_images, current_images):
+    """The state with ``finished_images`` closed as a model in the SCALE/ROTATION/SHIFT frame
+    (their points triangulated from them alone), and ``current_images`` registered at their
+    true poses as the current model; the true poses."""
+    state, R, t = _orbit(tmp_path)
+    R_fin = R @ ROTATION  # cam_from_finished = cam_from_world . world_from_finished
+    t_fin = (np.einsum("nij,j->ni", R, SHIFT) + t) / SCALE
+    _register(state, finished_images, R_fin, t_fin)
+    finished = FinishedModel.of(state)
+    state.close_model()
+    state.used[:] = False
+    _register(state, current_images, R, t)
+    return state, finished, R, t
+
+
+def _rotation_error_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(A @ B.T).magnitude()))
+
+
+def test_the_similarity_between_two_arcs_of_an_orbit_is_found_and_joins_them(tmp_path):
+    state, finished, R, t = _two_models(tmp_path, range(8), range(8, 16))
+    assert not state.registered[:8].any() and state.registered[8:].all()
+    sim = estimate_similarity(state, finished)
+    assert sim is not None
+    assert sim.inliers >= state.opts.abs_pose_min_num_inliers
+    assert abs(sim.scale / SCALE - 1) < 0.01
+    assert _rotation_error_deg(sim.R, ROTATION) < 0.3  # one essential matrix's rotation; the BAs refine it
+    np.testing.assert_allclose(sim.t, SHIFT, atol=0.02 * np.linalg.norm(SHIFT))
+
+    joined = join(state, finished, sim)  # equal sizes: the current model's frame stays
+    np.testing.assert_array_equal(joined, np.arange(8))
+    assert state.registered.all() and state.num_registered == 16
+    for i in range(16):
+        assert _rotation_error_deg(state.R[i], R[i]) < 0.3
+    centres, true_centres = state.centers(np.arange(16)), -np.einsum("nji,nj->ni", R, t)
+    spread = np.linalg.norm(true_centres - true_centres.mean(axis=0), axis=1).mean()
+    assert np.abs(centres - true_centres).max() < 0.01 * spread
+
+
+def test_a_larger_finished_model_keeps_its_frame_and_points(tmp_path):
+    state, finished, R, _ = _two_models(tmp_path, range(11), range(11, 16))
+    sim = estimate_similarity(state, finished)
+    assert sim is not None
+    join(state, finished, sim)
+    assert state.registered.all()
+    # the finished model's images keep their poses exactly, the others come into its frame
+    np.testing.assert_array_equal(state.R[:11], finished.R[:11])
+    R_fin = R @ ROTATION
+    for i in range(11, 16):
+        assert _rotation_error_deg(state.R[i], R_fin[i]) < 0.3
+    np.testing.assert_array_equal(state.track_xyz[finished.tracks], finished.xyz)
+
+
+@pytest.mark.parametrize("what", ["no cross pair", "rays of one image"])
+def test_no_similarity_without_a_rotation_or_with_the_scale_undetermined(tmp_path, what):
+    """Without a pair across the two models whose essential matrix gives the rotation, nothing;
+    with every ray in one image (a current model of one image that sees the finished model's
+    points), that image's pose in the other frame is fixed but not the scale: nothing either."""
+    current = range(8, 16) if what == "no cross pair" else [8]
+    state, finished, _, _ = _two_models(tmp_path, range(8), current)
+    if what == "no cross pair":
+        state.pair_matches = {k: v for k, v in state.pair_matches.items()
+                              if np.isin(k[0], finished.images) == np.isin(k[1], finished.images)}
+    else:
+        assert not state.track_valid.any()
+        assert np.isin(state.obs_track[state.obs_image == 8], finished.tracks).sum() >= state.opts.abs_pose_min_num_inliers
+    assert estimate_similarity(state, finished) is None
+
+
+def test_the_mapper_joins_a_model_to_the_one_it_could_not_grow_into(tmp_path, monkeypatch, caplog):
+    """The orbit's first model is kept from the second half of the images (as if none of them
+    saw enough of its points), so the mapper makes a second model of them: it joins the first
+    as a whole, one model of 16 images, close to the truth.  Without the join: two models."""
+    run_synth(tmp_path, SynthOptions(scene="orbit", num_images=16, observations_per_image=600, seed=4))
+    [payload] = load_payloads(tmp_path / "database.db", None, fixed_intrinsics=True, min_inliers=15)
+    second_half = np.arange(8, 16)
+
+    def hiding_the_second_half(step):
+        def wrapped(state, *args):
+            if state.used[:8].any():  # the first model closed: nothing hidden
+                return step(state, *args)
+            saved = state.used[second_half].copy()
+            state.used[second_half] = True
+            try:
+                return step(state, *args)
+            finally:
+                state.used[second_half] = saved
+        return wrapped
+
+    for name in ("try_initial_pair", "register_next", "register_structureless"):
+        monkeypatch.setattr(incremental, name, hiding_the_second_half(getattr(incremental, name)))
+    with caplog.at_level(logging.INFO, logger="sfm.mapper.incremental"):
+        models = incremental.reconstruct_incremental(payload, MapperOptions())
+    assert [len(m.images) for m in models] == [16]
+    assert "joined the current one as a whole" in caplog.text
+    result = evaluate(models[0], read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
+    assert result.auc[1.0] > 0.9, result.auc
+
+    monkeypatch.setattr(incremental, "estimate_similarity", lambda state, finished, seed=0: None)
+    assert sorted(len(m.images) for m in incremental.reconstruct_incremental(payload, MapperOptions())) == [8, 8]
