@@ -8,17 +8,21 @@ import logging
 
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
 from scipy.spatial.transform import Rotation
 
 from sfm.evaluation.ground_truth import read_gt_table
 from sfm.evaluation.metrics import evaluate
 from sfm.mapper import incremental
+from sfm.mapper.growth import Growth
 from sfm.mapper.joining import FinishedModel, estimate_similarity, join
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.state import MapperState
 from sfm.stages.payloads import load_payloads
 from sfm.stages.synth import run_synth
 from sfm.synthetic.options import SynthOptions
+from sfm.viz.mapping import log_growth
+from sfm.viz.recorder import Recorder
 
 # The finished model's frame: x_current = SCALE * ROTATION @ x_finished + SHIFT.
 SCALE = 2.5
@@ -134,10 +138,29 @@ def test_the_mapper_joins_a_model_to_the_one_it_could_not_grow_into(tmp_path, mo
 
     for name in ("try_initial_pair", "register_next", "register_structureless"):
         monkeypatch.setattr(incremental, name, hiding_the_second_half(getattr(incremental, name)))
+    growth = Growth(payload.label, list(payload.names), max_points=100)
     with caplog.at_level(logging.INFO, logger="sfm.mapper.incremental"):
-        models = incremental.reconstruct_incremental(payload, MapperOptions())
+        models = incremental.reconstruct_incremental(payload, MapperOptions(), growth)
     assert [len(m.images) for m in models] == [16]
-    assert "joined the current one as a whole" in caplog.text
+    assert "joined it as a whole" in caplog.text
+    # the recording: the first model joined the second, which is the cluster's model 0 and says so
+    first, second = growth.models
+    assert first.absorbed and first.rank == -1 and not second.absorbed and second.rank == 0
+    assert len(second.joins) == 1 and "the finished model of 8 images joined it as a whole" in second.joins[0]
+    assert growth.left_out() == {}
+    # ... and the recording shows it: the joined attempt under its own name, the join in words
+    with Recorder(tmp_path / "recording.rrd", tmp_path) as recorder:
+        log_growth(recorder, growth)
+    texts, entities = {}, set()
+    for chunk in RrdReader(str(tmp_path / "recording.rrd")).stream():
+        entities.add(str(chunk.entity_path))
+        batch = chunk.to_record_batch()
+        if "TextDocument:text" in batch.schema.names:
+            texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
+    label = payload.label
+    assert f"/clusters/{label}/joined0/points" in entities and f"/clusters/{label}/model0/points" in entities
+    assert not any("dropped" in e for e in entities)
+    assert "joined it as a whole" in texts[f"/clusters/{label}/model0/joins"]
     result = evaluate(models[0], read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
     assert result.auc[1.0] > 0.9, result.auc
 

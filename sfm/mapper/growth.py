@@ -66,6 +66,7 @@ class ModelGrowth:
     all_posed_at: int = 0  # images when the poses of all were last kept
     calibration: list[str] = field(default_factory=list)
     absorbed: bool = False  # joined a later model as a whole (``sfm.mapper.joining``)
+    joins: list[str] = field(default_factory=list)  # the earlier models that joined this one, in words
 
 
 @dataclass
@@ -133,10 +134,11 @@ class Growth:
         for i in np.flatnonzero(~state.registered):
             model.left_out[self.names[i]] = left_out_reason(state, int(i))
 
-    def absorb(self, index: int) -> None:
+    def absorb(self, index: int, how: str) -> None:
         """Model ``index`` (of :attr:`models`), closed before, joined the current model as a
-        whole: it is no longer a model of its own."""
+        whole (``how``: in words, for the recording): it is no longer a model of its own."""
         self.models[index].absorbed = True
+        self.models[-1].joins.append(how)
 
     def finish(self, min_size: int) -> None:
         """Rank the kept models as :func:`reconstruct_incremental` sorts them (largest first,

@@ -157,16 +157,18 @@ def join_a_finished_model(state: MapperState, adjuster: BundleAdjuster, finished
         sim = estimate_similarity(state, candidate, state.opts.seed)
         if sim is None:
             continue
+        before = state.num_registered
         images = join(state, candidate, sim)
-        log.info("%s: the finished model of %d images joined the current one as a whole (scale %.3g, %d of %d rays "
-                 "between them within %g px): %d images", state.payload.label, candidate.size, sim.scale, sim.inliers,
-                 sim.rays, state.opts.abs_pose_max_error, state.num_registered)
+        how = (f"at {before} images, the finished model of {candidate.size} images joined it as a whole: scale "
+               f"{sim.scale:.3g}, {sim.inliers} of the {sim.rays} rays between them within "
+               f"{state.opts.abs_pose_max_error:g} px; {state.num_registered} images")
+        log.info("%s: %s", state.payload.label, how)
         del finished[k]
         adjuster.global_()
         state.retriangulate()
         if growth is not None:
             if candidate.growth_index is not None:
-                growth.absorb(candidate.growth_index)
+                growth.absorb(candidate.growth_index, how)
             growth.record(state, adjuster.last_rms, images.tolist())
         return candidate
     return None

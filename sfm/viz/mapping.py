@@ -6,8 +6,10 @@ in the main process, on the ``registration`` timeline (the number of registered 
 registered it), ``clusters/<C>/model<m>/points`` (the sample of points, in their colours) and
 ``clusters/<C>/model<m>/ba_rms_px`` (the last bundle adjustment's RMS reprojection error),
 ``clusters/<C>/model<m>/calibration`` (what its final bundle adjustments refined of each camera,
-and why); a model attempt too small to keep is ``clusters/<C>/dropped<a>``.  ``clusters/<C>/unregistered``
-says why each image in no model was left out; ``clusters/<C>/error`` why a cluster failed.
+and why), ``clusters/<C>/model<m>/joins`` (the earlier models that joined it as a whole, and
+on what evidence); a model attempt too small to keep is ``clusters/<C>/dropped<a>``, one that
+joined a later model ``clusters/<C>/joined<a>``.  ``clusters/<C>/unregistered`` says why each
+image in no model was left out; ``clusters/<C>/error`` why a cluster failed.
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ from sfm.viz.models import frustum_depth, log_frustum, log_model, world_centres,
 from sfm.viz.recorder import Recorder, entity_part
 
 
-def model_prefix(label: str, rank: int, attempt: int) -> str:
+def model_prefix(label: str, rank: int, attempt: int, absorbed: bool = False) -> str:
+    if absorbed:
+        return f"clusters/{label}/joined{attempt}"
     return f"clusters/{label}/model{rank}" if rank >= 0 else f"clusters/{label}/dropped{attempt}"
 
 
@@ -34,7 +38,7 @@ def log_growth(recorder: Recorder, growth) -> int:
     for attempt, model in enumerate(growth.models):
         if not model.steps:
             continue
-        prefix = model_prefix(label, model.rank, attempt)
+        prefix = model_prefix(label, model.rank, attempt, model.absorbed)
         times = [step.num_registered for step in model.steps]
         poses: dict[int, list] = {}  # image -> [(time, R, t)]
         for step in model.steps:
@@ -67,6 +71,9 @@ def log_growth(recorder: Recorder, growth) -> int:
         if model.calibration:
             recorder.log(f"{prefix}/calibration", rr.TextDocument(calibration_text(model.calibration),
                                                                   media_type=rr.MediaType.MARKDOWN))
+        if model.joins:
+            recorder.log(f"{prefix}/joins", rr.TextDocument("\n".join(f"- {line}" for line in model.joins),
+                                                            media_type=rr.MediaType.MARKDOWN))
     recorder.clear_time("registration")
     left_out = list(_left_out(growth))
     lines = [f"| {name} | {reason} |" for name, reason in left_out]
