@@ -141,11 +141,8 @@ def estimate_similarity(state: MapperState, finished: FinishedModel, seed: int =
     """The similarity from ``finished``'s frame to the current model's (module docstring), or
     None when no rotation candidate gives one the acceptance terms allow."""
     opts = state.opts
-    in_finished = np.zeros(len(state.names), bool)
-    in_finished[finished.images] = True
-    if not any(len(m) >= opts.abs_pose_min_num_inliers and in_finished[a] != in_finished[b]
-               and (state.registered[a] or state.registered[b]) for (a, b), (m, _) in state.pair_matches.items()):
-        return None  # no pair across the two models to give the rotation (before the arrays are expanded)
+    if not _has_pair_across(state, finished.images):
+        return None  # nothing to give the rotation (checked before the arrays are expanded)
     model = _Arrays(*finished.arrays(state), finished.params)
     rotations = _rotation_candidates(state, model, seed)
     if not rotations:
@@ -160,6 +157,21 @@ def estimate_similarity(state: MapperState, finished: FinishedModel, seed: int =
         if found is not None and (best is None or found.inliers > best.inliers):
             best = found
     return best
+
+
+def _has_pair_across(state: MapperState, images: np.ndarray) -> bool:
+    """Whether a pair of one of ``images`` and a registered image has at least
+    ``abs_pose_min_num_inliers`` verified matches (vectorised: a cluster that closes many
+    small models asks this of each at every model's end)."""
+    if not state.pair_matches:
+        return False
+    pairs = np.array(list(state.pair_matches), dtype=np.int64)
+    sizes = np.fromiter((len(m) for m, _ in state.pair_matches.values()), np.int64, len(pairs))
+    inside = np.zeros(len(state.names), bool)
+    inside[images] = True
+    a, b = pairs[:, 0], pairs[:, 1]
+    across = (inside[a] & state.registered[b]) | (inside[b] & state.registered[a])
+    return bool(np.any(across & (sizes >= state.opts.abs_pose_min_num_inliers)))
 
 
 def _rotation_candidates(state: MapperState, finished: _Arrays, seed: int) -> list[np.ndarray]:
