@@ -11,10 +11,9 @@ local BA around it; run a global BA (and re-triangulation, and filtering of obse
 (``sfm.mapper.bundle_adjuster``).  When no image can be registered any more, the model is
 refined one last time; a model finished earlier that shares no image with it, but whose points
 its images see or the other way round, then joins it as a whole (``sfm.mapper.joining``) and the
-model grows on;
-otherwise a new model is started from the remaining images: several models are a result, not an
-error.  A model whose last BAs moved a guessed focal length far (``FOCAL_RESTART_RATIO``) is
-first grown again from the refined value.
+model grows on; otherwise a new model is started from the remaining images: several models are
+a result, not an error.  A model whose last BAs moved a guessed focal length far
+(``FOCAL_RESTART_RATIO``) is first grown again from the refined value.
 
 State lives in flat numpy arrays over the observations of the tracks (``sfm.mapper.tracks``),
 so each step is vectorised; the bookkeeping is :class:`sfm.mapper.state.MapperState`.
