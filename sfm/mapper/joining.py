@@ -141,12 +141,10 @@ def estimate_similarity(state: MapperState, finished: FinishedModel, seed: int =
     """The similarity from ``finished``'s frame to the current model's (module docstring), or
     None when no rotation candidate gives one the acceptance terms allow."""
     opts = state.opts
-    if not _has_pair_across(state, finished.images):
-        return None  # nothing to give the rotation (checked before the arrays are expanded)
-    model = _Arrays(*finished.arrays(state), finished.params)
-    rotations = _rotation_candidates(state, model, seed)
+    rotations = _rotation_candidates(state, finished, seed)
     if not rotations:
-        return None
+        return None  # before the finished model's tracks are expanded
+    model = _Arrays(*finished.arrays(state), finished.params)
     cur_rows, cur_x = _rays(state, state.registered, state.params, model.track_valid)  # finished's points, current rays
     fin_rows, fin_x = _rays(state, model.registered, model.params, state.track_valid)  # current points, finished rays
     if len(cur_rows) + len(fin_rows) < opts.abs_pose_min_num_inliers:
@@ -159,46 +157,35 @@ def estimate_similarity(state: MapperState, finished: FinishedModel, seed: int =
     return best
 
 
-def _has_pair_across(state: MapperState, images: np.ndarray) -> bool:
-    """Whether a pair of one of ``images`` and a registered image has at least
-    ``abs_pose_min_num_inliers`` verified matches (vectorised: a cluster that closes many
-    small models asks this of each at every model's end)."""
-    if not state.pair_matches:
-        return False
-    pairs = np.array(list(state.pair_matches), dtype=np.int64)
-    sizes = np.fromiter((len(m) for m, _ in state.pair_matches.values()), np.int64, len(pairs))
-    inside = np.zeros(len(state.names), bool)
-    inside[images] = True
-    a, b = pairs[:, 0], pairs[:, 1]
-    across = (inside[a] & state.registered[b]) | (inside[b] & state.registered[a])
-    return bool(np.any(across & (sizes >= state.opts.abs_pose_min_num_inliers)))
-
-
-def _rotation_candidates(state: MapperState, finished: _Arrays, seed: int) -> list[np.ndarray]:
+def _rotation_candidates(state: MapperState, finished: FinishedModel, seed: int) -> list[np.ndarray]:
     """``R`` (finished frame to current frame) from the essential matrices of the pairs across
     the two models with the most verified matches, each with at least
-    ``abs_pose_min_num_inliers`` of them and of the essential matrix's inliers."""
+    ``abs_pose_min_num_inliers`` of them and of the essential matrix's inliers.  The pairs are
+    found in one vectorised pass: a cluster that closes many small models asks this of each at
+    every model's end."""
     opts = state.opts
-    pairs = []
-    for (a, b), (m, _config) in state.pair_matches.items():
-        if len(m) < opts.abs_pose_min_num_inliers:
-            continue
-        if finished.registered[a] and state.registered[b]:
-            pairs.append((len(m), a, b, m))
-        elif finished.registered[b] and state.registered[a]:
-            pairs.append((len(m), b, a, m[:, ::-1]))
-    pairs.sort(key=lambda p: (-p[0], p[1], p[2]))
+    if not state.pair_matches:
+        return []
+    keys = list(state.pair_matches)
+    pairs = np.array(keys, dtype=np.int64)
+    sizes = np.fromiter((len(m) for m, _ in state.pair_matches.values()), np.int64, len(keys))
+    position = np.full(len(state.names), -1)  # image -> its row in the finished model's arrays
+    position[finished.images] = np.arange(finished.size)
+    a, b = pairs[:, 0], pairs[:, 1]
+    forward = (position[a] >= 0) & state.registered[b]  # (finished, current)
+    across = (forward | ((position[b] >= 0) & state.registered[a])) & (sizes >= opts.abs_pose_min_num_inliers)
     candidates = []
-    for _, k, i, m in pairs[:MAX_ROTATION_PAIRS]:
+    for p in sorted(np.flatnonzero(across).tolist(), key=lambda p: (-sizes[p], keys[p]))[:MAX_ROTATION_PAIRS]:
+        m = state.pair_matches[keys[p]][0]
+        k, i, m = (a[p], b[p], m) if forward[p] else (b[p], a[p], m[:, ::-1])
         ck, ci = state.cam_index[k], state.cam_index[i]
         xk = unproject(state.priors[ck].model, finished.params[ck], np.asarray(state.payload.keypoints[k], float)[m[:, 0], :2])
         xi = unproject(state.priors[ci].model, state.params[ci], np.asarray(state.payload.keypoints[i], float)[m[:, 1], :2])
         focal = np.mean([state.camera_focal(ci), state.camera_focal(ck)])
-        rel = pose_from_essential(xk, xi, opts.max_reproj_error / focal, seed + k)
+        rel = pose_from_essential(xk, xi, opts.max_reproj_error / focal, seed + int(k))
         if rel is None or int(rel[2].sum()) < opts.abs_pose_min_num_inliers:
             continue
-        R_rel = rel[0]  # cam_i from cam_k
-        candidates.append(state.R[i].T @ R_rel @ finished.R[k])
+        candidates.append(state.R[i].T @ rel[0] @ finished.R[position[k]])  # rel[0]: cam_i from cam_k
     return candidates
 
 
@@ -227,20 +214,16 @@ def _scale_and_translation(state: MapperState, finished: _Arrays, R: np.ndarray,
     focal = np.array([state.camera_focal(c) for c in range(len(state.priors))])
     fin_focal = np.array([np.mean(focal_lengths(state.priors[c].model, finished.params[c])) for c in range(len(state.priors))])
 
+    x_all = np.concatenate([cur_x, fin_x])
+    f_all = np.concatenate([focal[state.cam_index[img_c]], fin_focal[state.cam_index[img_f]]])
+
     def errors(scale: float, t: np.ndarray) -> np.ndarray:
-        pc = np.einsum("nij,nj->ni", state.R[img_c], scale * X @ R.T + t) + state.t[img_c]
-        pf = np.einsum("nij,nj->ni", Q, Y - t) + scale * finished.t[img_f]
-        e = np.full(len(A), np.inf)
-        for k, (p, x, f) in enumerate(((pc, cur_x, focal[state.cam_index[img_c]]),
-                                       (pf, fin_x, fin_focal[state.cam_index[img_f]]))):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err = np.linalg.norm(p[:, :2] / p[:, 2:] - x, axis=1) * f
-            err[~(p[:, 2] > 0)] = np.inf
-            if k == 0:
-                e[: len(pc)] = err
-            else:
-                e[len(pc):] = err
-        return e
+        """Pixel reprojection error of every ray (inf behind its camera)."""
+        p = np.concatenate([np.einsum("nij,nj->ni", state.R[img_c], scale * X @ R.T + t) + state.t[img_c],
+                            np.einsum("nij,nj->ni", Q, Y - t) + scale * finished.t[img_f]])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(p[:, :2] / p[:, 2:] - x_all, axis=1) * f_all
+        return np.where(p[:, 2] > 0, err, np.inf)
 
     def solve(idx: np.ndarray):
         sol, *_ = np.linalg.lstsq(A[idx].reshape(-1, 4), b[idx].reshape(-1), rcond=None)

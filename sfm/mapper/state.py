@@ -230,9 +230,7 @@ class MapperState:
         """Make the model closed earlier with these arrays the current one (``sfm.mapper.joining``):
         its images registered at their poses, its points, the cameras at ``params``; its
         observations are inliers where they reproject within ``max_reproj_error``."""
-        start_focals = self.start_focals
         self._reset_model()
-        self.start_focals = start_focals
         self.registered[:] = registered
         self.num_registered = int(registered.sum())
         self.R[registered], self.t[registered] = R[registered], t[registered]
