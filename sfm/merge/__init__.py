@@ -23,6 +23,12 @@ Design:
   similarities composed along its tree path; an image registered in several models keeps the
   pose of the model nearest the anchor, a camera the parameters of the model that registered
   most of its images.
+- Bridges (a departure; ``sfm.merge.bridging``): when the cluster graph falls into parts, each
+  part is aligned in its anchor's frame and registered to another part as one rigid body from
+  the rays between them (a part's photos seeing the other's points), on PnP's terms, by the
+  estimate that joins models within a cluster (``sfm.mapper.joining``); the bridge becomes an
+  edge between the parts' anchors, weighted after every edge from common cameras, and the plan
+  is made again.
 - Refinement (Figure 1 and the end of section 3's overview: re-triangulation and BA "can be
   executed alternatively until convergence"; its self-calibration decided again on all the
   photos, not kept from the clusters): the merged model starts from the local models'
@@ -40,15 +46,16 @@ Design:
 - Departures: the MSD is normalised by the common cameras' extent so weights compare across
   pairs of models of different scales; the relative scale's median is anchored at each RANSAC
   hypothesis (robust to up to half the common cameras being wrong) and the rotation comes from
-  the cameras' orientations; every connected part of the cluster graph becomes its own model
-  (``sparse/0``, ``sparse/1``, ..., largest first), where the authors' public code merges only
-  the largest.
+  the cameras' orientations; parts of the cluster graph are bridged (above), and every part
+  still apart becomes its own model (``sparse/0``, ``sparse/1``, ..., largest first), where
+  the authors' public code merges only the largest.
 
 Modules, in reading order:
 
 - ``sfm.merge.options``: ``MergeOptions`` (``max_msd``, ``min_common_cameras``).
 - ``sfm.merge.cluster_graph``: the cluster graph's edges (similarity and MSD) and the merge plan.
 - ``sfm.merge.alignment``: every model in its anchor's frame, and the merged poses and cameras.
+- ``sfm.merge.bridging``: parts of the cluster graph joined from the rays between them.
 - ``sfm.merge.refinement``: re-triangulation and global BA of the merged poses.
 - ``sfm.merge.extension``: new images' local models merged into a finished model held as the
   anchor (Alg. 2 with the anchor given), and the BA of the new part (``graphsfm extend``).

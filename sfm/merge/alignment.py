@@ -104,3 +104,16 @@ def merged_points(models: list[LocalModel], plan: MergePlan, sims: dict[int, Sim
         count += len(points)
     xyz = np.concatenate(coordinates) if coordinates else np.zeros((0, 3))
     return names, np.asarray(keypoints, np.int64), np.asarray(owners, np.int64), xyz
+
+
+def align_components(models: list[LocalModel], plans: list[MergePlan], edges: dict, nominal: dict | None):
+    """Every merge plan's models in its anchor's frame (Alg. 2): ``(plan, poses, camera
+    parameters, points)`` per plan (:func:`merged_poses`, :func:`merged_points`), and each
+    plan's ``anchor_from_model`` similarities."""
+    components, all_sims = [], []
+    for plan in plans:
+        sims = anchor_from_model(plan, edges)
+        all_sims.append(sims)
+        poses, params = merged_poses(models, plan, sims, nominal)
+        components.append((plan, poses, params, merged_points(models, plan, sims)))
+    return components, all_sims

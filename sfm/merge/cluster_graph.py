@@ -82,17 +82,21 @@ def build_cluster_graph(models: list[LocalModel], options: MergeOptions, seed: i
 def plan_components(models: list[LocalModel], edges: dict) -> list[MergePlan]:
     """The merge plan of every connected part of the cluster graph's used edges: Kruskal MinST and
     minimum-height-tree anchor (section 3.2.3, Alg. 2, lines 2-12; ``graph.merge_plan``), a
-    model's size being its number of images."""
+    model's size being its number of images; an edge's weight is its MSD, a bridge's its
+    ``weight`` (``sfm.merge.bridging``)."""
     sizes = {k: len(m.model.images) for k, m in enumerate(models)}
-    weights = {(u, v): e["msd"] for (u, v), e in edges.items() if e["used"]}
+    weights = {(u, v): e.get("weight", e["msd"]) for (u, v), e in edges.items() if e["used"]}
     return plan_merges(list(range(len(models))), sizes, weights)
 
 
-def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> list[dict]:
+def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions,
+                   bridged: bool = False) -> list[dict]:
     """Why each merge component other than the first (Alg. 2 merges only along cluster-graph
     edges) joins no other: the pair of local models, one inside and one outside, sharing the
     most registered images, and what stopped their edge (no common image, fewer than
-    ``min_common_cameras``, no similarity found, or its MSD above ``max_msd``)."""
+    ``min_common_cameras``, no similarity found, or its MSD above ``max_msd``); with
+    ``bridged``, also that no bridge from the rays between the parts joined it
+    (``sfm.merge.bridging``)."""
     names = [{im.name for im in m.model.images.values()} for m in models]
     found = []
     for plan in plans[1:]:
@@ -117,4 +121,8 @@ def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan]
             reason = (f"{models[u].label} and {models[v].label} align with an MSD of {edge['msd']:.3g}, above "
                       f"--max-msd {options.max_msd:g}")
         found.append({**entry, "nearest": models[v].label, "common_images": common, "reason": reason})
+    if bridged:
+        for part in found:
+            part["reason"] += ("; nor do its photos see enough of the other parts' points to join it as one rigid body "
+                               "(PnP's inliers)")
     return found

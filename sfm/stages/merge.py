@@ -26,7 +26,8 @@ from sfm.io.ledger import Ledger, files_fingerprint, fingerprint, options_record
 from sfm.io.report import model_facts, models_fields, read_report, update_report
 from sfm.io.workspace import CLUSTERS, DATABASE, MERGE, image_dir_of, numbered_folders, read_json, write_json_atomic
 from sfm.mapper.options import MapperOptions
-from sfm.merge.alignment import anchor_from_model, merged_points, merged_poses
+from sfm.merge.alignment import align_components
+from sfm.merge.bridging import bridge_edges, find_bridges
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components, unjoined_parts
 from sfm.merge.options import MergeOptions
 from sfm.merge.refinement import refine_with_poses
@@ -53,15 +54,18 @@ def load_local_models(workspace: Path) -> list[LocalModel]:
     return out
 
 
-def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> dict:
-    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges, each merge
-    component's MinST, anchor and layers, and why the components after the first stayed apart."""
+def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions,
+               bridged: bool = False) -> dict:
+    """The content of ``WORK/merge.json``: the cluster graph's nodes and edges (bridges among
+    them), each merge component's MinST, anchor and layers, and why the components after the
+    first stayed apart (``bridged``: bridging was tried)."""
     return {
         "nodes": [{"id": k, "label": m.label, "images": len(m.model.images), "points": len(m.model.points3D)} for k, m in enumerate(models)],
         "edges": [
             {"a": u, "b": v, "scale": e["sim"].scale, "rotation_qvec": rotation_to_quaternion(e["sim"].rotation).tolist(),
              "translation": e["sim"].translation.tolist(), "msd": e["msd"], "inliers": e["inliers"],
-             "common_cameras": e["common_cameras"], "common_points": e["common_points"], "used": e["used"]}
+             "common_cameras": e["common_cameras"], "common_points": e["common_points"], "used": e["used"],
+             **({"bridge": True, "rays": e["rays"]} if e.get("bridge") else {})}
             for (u, v), e in sorted(edges.items())
         ],
         "components": [
@@ -70,7 +74,7 @@ def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], op
              "path": {str(k): list(v) for k, v in p.path.items()}, "num_layers": p.num_layers}
             for p in plans
         ],
-        "unjoined": unjoined_parts(models, edges, plans, options),
+        "unjoined": unjoined_parts(models, edges, plans, options, bridged),
     }
 
 
@@ -121,15 +125,22 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     with progress.bar_for("model_pairs", "merge: align local models", "pair"):
         edges = build_cluster_graph(models, options, seed=mapper_options.seed)
     plans = plan_components(models, edges)
-    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options))
     with Database(workspace / DATABASE, readonly=True) as db:
         nominal = {cam_id: cam.params for cam_id, cam in db.read_cameras().items()}
-    components, all_sims = [], []
-    for plan in plans:
-        sims = anchor_from_model(plan, edges)
-        all_sims.append(sims)
-        poses, params = merged_poses(models, plan, sims, nominal)
-        components.append((plan, poses, params, merged_points(models, plan, sims)))
+    components, all_sims = align_components(models, plans, edges, nominal)
+    bridged = len(plans) > 1
+    if bridged:  # parts no common cameras align: bridged where their photos see each other's points
+        progress.stage("merge", f"bridge {len(plans)} parts")
+        union = ClusterPayloads(workspace / DATABASE, [sorted(set().union(*(poses for _, poses, _, _ in components)))],
+                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
+                                min_inliers=mapper_options.min_num_matches, labels=["parts"])[0]
+        bridges = find_bridges(union, mapper_options, [c[1:] for c in components], seed=mapper_options.seed)
+        del union
+        if bridges:
+            edges.update(bridge_edges(plans, bridges, options.max_msd))
+            plans = plan_components(models, edges)
+            components, all_sims = align_components(models, plans, edges, nominal)
+    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options, bridged))
     labels = [m.label for m in models]
     local_points = sum(len(m.model.points3D) for m in models)
     if recorder.enabled:

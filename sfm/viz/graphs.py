@@ -42,7 +42,7 @@ def graph_layout(n: int, i: np.ndarray, j: np.ndarray, weights: np.ndarray) -> n
         pos = {0: np.zeros(2)}
     elif n <= FORCE_MAX_NODES:
         lengths = dict(nx.shortest_path_length(g, weight="length"))
-        unreachable = 1.5 * max((d for row in lengths.values() for d in row.values()), default=1.0)
+        unreachable = 1.5 * max((d for row in lengths.values() for d in row.values() if d > 0), default=1.0)
         dist = {a: {b: lengths[a].get(b, unreachable) for b in range(n)} for a in range(n)}
         pos = nx.kamada_kawai_layout(g, dist=dist)
     else:

@@ -52,7 +52,8 @@ def log_merge(recorder: Recorder, labels: list[str], models: list, edges: dict, 
                edges=pairs,
                edge_colors=[MINST_COLOR if p in tree else GREY if edges[p]["used"] else DROPPED_COLOR for p in pairs],
                edge_widths=[8.0 if p in tree else 1.5 for p in pairs],
-               edge_labels=[f"MSD {edges[p]['msd']:.2g}" for p in pairs])
+               edge_labels=[f"bridge, {edges[p]['inliers']} rays" if edges[p].get("bridge") else f"MSD {edges[p]['msd']:.2g}"
+                            for p in pairs])
     budget = recorder.options.record_points
     for plan, sim in zip(plans, sims):
         for node in plan.clusters:

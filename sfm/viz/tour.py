@@ -158,6 +158,13 @@ distortion and the principal point only where the photos determine them) and why
 """
 
 
+def _edge_words(edge: dict, weight: float) -> str:
+    """A merge-tree edge in words: its MSD, or a bridge's inlier rays (``sfm.merge.bridging``)."""
+    if edge.get("bridge"):
+        return f"bridge: {edge['inliers']} of {edge['rays']} rays"
+    return f"MSD {weight:.2g}"
+
+
 def merge_text(nodes: list[str], edges: dict, plans, options) -> str:
     """Stage 5: cluster graph, MinST, MHT anchor, similarity transforms (Alg. 2)."""
     used = [(u, v, e) for (u, v), e in sorted(edges.items()) if e["used"]]
@@ -168,12 +175,21 @@ def merge_text(nodes: list[str], edges: dict, plans, options) -> str:
         layers = "; ".join(f"layer {layer}: " + ", ".join(nodes[n] for n in plan.clusters
                                                           if plan.layer[n] == layer and n != plan.anchor)
                            for layer in range(1, plan.num_layers + 1))
-        minst = ", ".join(f"{nodes[a]}-{nodes[b]} (MSD {w:.2g})" for a, b, w in plan.edges) or "none"
+        minst = ", ".join(f"{nodes[a]}-{nodes[b]} ({_edge_words(edges[(min(a, b), max(a, b))], w)})"
+                          for a, b, w in plan.edges) or "none"
         parts.append(f"- Part {c}: {len(plan.clusters)} local model(s); MinST {minst}; anchor "
                      f"**{nodes[plan.anchor]}**; {plan.num_layers} peeling layer(s) ({layers or 'none'}); "
                      f"tree height from the anchor {height}.")
     dropped_line = (", ".join(f"{nodes[u]}-{nodes[v]} (MSD {e['msd']:.2g})" for u, v, e in dropped)
                     if dropped else "none")
+    bridges = [(u, v, e) for u, v, e in used if e.get("bridge")]
+    bridge_text = ("\n\n**Bridges.** Where the cluster graph fell into parts that no common cameras align, "
+                   "a part joins another as one rigid body where its photos see the other's points, on "
+                   "PnP's terms (the rotation from a matched pair's essential matrix, the scale and "
+                   "translation from the rays; `sfm.merge.bridging`): "
+                   + ", ".join(f"{nodes[u]}-{nodes[v]} ({e['inliers']} of {e['rays']} rays)" for u, v, e in bridges)
+                   + ". A bridge joins the parts' anchors; the tree takes one only where no common cameras do."
+                   if bridges else "")
     return f"""## 5. Merge: every local model into one frame
 
 **What it does.** Aligns every pair of local models that share at least
@@ -190,11 +206,11 @@ each merging into its neighbour, and the last node (or the larger of the last tw
 the centre of a minimum height tree, so no model's transform is chained along a long path.
 
 **This run.** {len(nodes)} local models, {len(used)} alignable pairs (edges), {len(dropped)} dropped
-above the MSD bound {options.max_msd:g}: {dropped_line}.
+above the MSD bound {options.max_msd:g}: {dropped_line}.{bridge_text}
 {chr(10).join(parts)}
 
 **In the recording.** `graph/merge`: the cluster graph of the local models, edges labelled
-with their MSD, the MinST thick, the anchor large, each node labelled with its layer. On the
+with their MSD (a bridge with its inlier rays), the MinST thick, the anchor large, each node labelled with its layer. On the
 `merge_layer` timeline, `merge/<model>`: each local model (its cameras and a sample of its
 points, in its cluster's colour) in its own frame at layer 0, moved into the anchor's frame at
 the layer it merges in.
