@@ -72,6 +72,9 @@ def test_two_halves_of_an_orbit_without_a_common_image_are_bridged(tmp_path):
     assert abs(sim.scale / SCALE - 1) < 0.01
     assert np.degrees(Rotation.from_matrix(sim.rotation @ ROTATION.T).magnitude()) < 0.3
     np.testing.assert_allclose(sim.translation, SHIFT, atol=0.02 * np.linalg.norm(SHIFT))
+    # two models of an earlier run (graphsfm extend's other models) are not tried together
+    assert find_bridges(payload, MapperOptions(), parts, finished=[True, True]) == []
+    assert len(find_bridges(payload, MapperOptions(), parts, finished=[True, False])) == 1
 
 
 def _model(label: str, num_images: int) -> LocalModel:

@@ -71,16 +71,21 @@ def part_models(state: MapperState, parts: list[tuple[dict, dict, tuple]]) -> li
 
 
 def find_bridges(payload: MapperInput, opts: MapperOptions, parts: list[tuple[dict, dict, tuple]],
-                 seed: int = 0) -> list[Bridge]:
+                 seed: int = 0, finished: list[bool] | None = None) -> list[Bridge]:
     """Every pair of ``parts`` (``(poses, camera parameters, points)`` of each merge plan, in
     the plans' order) that a similarity joins on PnP's terms (module docstring), the larger part
-    as ``into``.  ``payload``: the images of all the parts and their verified matches."""
+    as ``into``.  ``payload``: the images of all the parts and their verified matches.
+    ``finished``: parts that are models of an earlier run (``graphsfm extend``): two of them are
+    not tried together, as that run kept them apart."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # the parts are final: nothing registers a dropped image again
     models = part_models(state, parts)
+    finished = finished or [False] * len(parts)
     bridges = []
     for a in range(len(models)):
         for b in range(a + 1, len(models)):
+            if finished[a] and finished[b]:
+                continue
             into, moved = (a, b) if models[a].size >= models[b].size else (b, a)
             current = models[into]
             registered, R, t, track_valid, track_xyz = current.arrays(state)

@@ -7,7 +7,10 @@ images' clusters; the cluster graph's edges are the similarities and MSDs of sec
 tree is rooted at the finished model instead of a minimum-height-tree centre
 (``graph.merge_plan.plan_merges(anchor=...)``), so the finished model never moves: every new
 model is mapped into its frame along its tree path, and an image it already registered keeps
-its pose there.  Local models that no edge path joins to it stay models of their own.
+its pose there.  Parts of the graph that no common cameras join are bridged where their photos
+see each other's points, as in the ``merge`` stage (``sfm.merge.bridging``; two models of the
+earlier run are not bridged to each other); local models that no path joins to it then stay
+models of their own.
 
 The merged model is then re-triangulated with every pose, and bundle-adjusted in the region of
 the new images only (``BundleAdjuster.region``: the new images and the old ones that share
@@ -53,9 +56,15 @@ def plan_extension(nodes: list[LocalModel], options: MergeOptions, seed: int = 0
     component of the finished model rooted at it (Alg. 2 with the anchor given), every other
     component planned as in the ``merge`` stage (lines 3-12).  The anchor's plan comes first."""
     edges = build_cluster_graph(nodes, options, seed=seed)
+    return edges, extension_plans(nodes, edges)
+
+
+def extension_plans(nodes: list[LocalModel], edges: dict) -> list[MergePlan]:
+    """The merge plans of :func:`plan_extension` over ``edges`` (bridges among them, weighted
+    by their ``weight``, ``sfm.merge.bridging``)."""
     sizes = {k: len(m.model.images) for k, m in enumerate(nodes)}
-    weights = {(u, v): e["msd"] for (u, v), e in edges.items() if e["used"]}
-    return edges, plan_merges(list(range(len(nodes))), sizes, weights, anchor=ANCHOR)
+    weights = {(u, v): e.get("weight", e["msd"]) for (u, v), e in edges.items() if e["used"]}
+    return plan_merges(list(range(len(nodes))), sizes, weights, anchor=ANCHOR)
 
 
 def extended_poses(nodes: list[LocalModel], plan: MergePlan, edges: dict, nominal: dict[int, np.ndarray] | None = None):

@@ -58,9 +58,9 @@ from sfm.io.ledger import Ledger, changes, files_fingerprint, fingerprint, optio
 from sfm.io.report import finish_run, model_facts, models_fields, start_run, update_report
 from sfm.io.workspace import (DATABASE, RECORDING, WorkspaceLock, numbered_folders, read_georegistration, read_json,
                                write_georegistration, write_json_atomic)
-from sfm.merge.alignment import anchor_from_model, merged_poses
+from sfm.merge.alignment import align_components, anchor_from_model, merged_poses
 from sfm.merge.cluster_graph import LocalModel
-from sfm.merge.extension import ANCHOR, extended_poses, plan_extension, refine_extension
+from sfm.merge.extension import ANCHOR, extended_poses, extension_plans, plan_extension, refine_extension
 from sfm.merge.options import ExtendOptions
 from sfm.merge.refinement import refine_with_poses
 from sfm.stages.extract import run_extract
@@ -68,6 +68,7 @@ from sfm.stages.extract_writer import extract_options_record
 from sfm.stages.georegister import georegister_models
 from sfm.stages.map import map_clusters, registered_names, write_models
 from sfm.stages.match import match_extension
+from sfm.stages.merge import bridge_parts
 from sfm.stages.payloads import ClusterPayloads
 from sfm.stages.reconstruct import ReconstructOptions
 from sfm.viz.mapping import log_cluster_error, log_growth, log_local_model
@@ -335,11 +336,18 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     nodes = [LocalModel(f"sparse/{k}", m) for k, m in enumerate(olds)] + models
     num_old = len(olds)
     edges, plans = plan_extension(nodes, o.merge, seed=o.mapper.seed)
+    with Database(ext.ws / DATABASE, readonly=True) as database:
+        nominal = {cam_id: cam.params for cam_id, cam in database.read_cameras().items()}
+    if len(plans) > 1:  # parts no common cameras align: bridged where their photos see each other's points
+        parts, _ = align_components(nodes, plans, edges, nominal)
+        found = bridge_parts(ext.ws / DATABASE, o.mapper, o.merge, plans, parts,
+                             finished=[all(n < num_old for n in p.clusters) for p in plans])
+        if found:
+            edges.update(found)
+            plans = extension_plans(nodes, edges)
     main = plans[0]
     new_set = set(new_names)
     untouched = [p.anchor for p in plans[1:] if len(p.clusters) == 1 and p.anchor < num_old]
-    with Database(ext.ws / DATABASE, readonly=True) as database:
-        nominal = {cam_id: cam.params for cam_id, cam in database.read_cameras().items()}
     components = []  # (plan, poses, params) of the other plans with a new model: models of their own
     for plan in plans[1:]:
         if not (len(plan.clusters) == 1 and plan.anchor < num_old):
@@ -427,7 +435,8 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     ext.times.update({"merge": t_merge, "final_ba": t_ba})
     write_json_atomic(ext.dir / "merge.json", {
         "nodes": [{"id": k, "label": n.label, "images": len(n.model.images)} for k, n in enumerate(nodes)],
-        "edges": [{"a": u, "b": v, "msd": e["msd"], "common_cameras": e["common_cameras"], "used": e["used"]}
+        "edges": [{"a": u, "b": v, "msd": e["msd"], "common_cameras": e["common_cameras"], "used": e["used"],
+                   **({"bridge": True, "inliers": e["inliers"], "rays": e["rays"]} if e.get("bridge") else {})}
                   for (u, v), e in sorted(edges.items())],
         "components": [{"anchor": p.anchor, "clusters": list(p.clusters), "minst": [list(e) for e in p.edges]}
                        for p in plans],

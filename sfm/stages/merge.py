@@ -78,6 +78,21 @@ def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], op
     }
 
 
+def bridge_parts(database: Path, mapper_options: MapperOptions, options: MergeOptions, plans: list[MergePlan],
+                 components: list, finished: list[bool] | None = None) -> dict:
+    """The cluster-graph edges that bridge merge plans no common cameras align, where their
+    photos see each other's points (``sfm.merge.bridging``): ``components`` are the plans'
+    ``(plan, poses, camera parameters, points)`` in their anchors' frames
+    (``sfm.merge.alignment.align_components``), ``finished`` as ``find_bridges`` takes it."""
+    progress.stage("merge", f"bridge {len(plans)} parts")
+    union = ClusterPayloads(database, [sorted(set().union(*(poses for _, poses, _, _ in components)))],
+                            fixed_intrinsics=not mapper_options.refine_given_intrinsics,
+                            min_inliers=mapper_options.min_num_matches, labels=["parts"])[0]
+    bridges = find_bridges(union, mapper_options, [c[1:] for c in components], seed=mapper_options.seed,
+                           finished=finished)
+    return bridge_edges(plans, bridges, options.max_msd)
+
+
 @dataclass(frozen=True)
 class MergeResult:
     num_local_models: int
@@ -129,15 +144,10 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
         nominal = {cam_id: cam.params for cam_id, cam in db.read_cameras().items()}
     components, all_sims = align_components(models, plans, edges, nominal)
     bridged = len(plans) > 1
-    if bridged:  # parts no common cameras align: bridged where their photos see each other's points
-        progress.stage("merge", f"bridge {len(plans)} parts")
-        union = ClusterPayloads(workspace / DATABASE, [sorted(set().union(*(poses for _, poses, _, _ in components)))],
-                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
-                                min_inliers=mapper_options.min_num_matches, labels=["parts"])[0]
-        bridges = find_bridges(union, mapper_options, [c[1:] for c in components], seed=mapper_options.seed)
-        del union
-        if bridges:
-            edges.update(bridge_edges(plans, bridges, options.max_msd))
+    if bridged:
+        found = bridge_parts(workspace / DATABASE, mapper_options, options, plans, components)
+        if found:
+            edges.update(found)
             plans = plan_components(models, edges)
             components, all_sims = align_components(models, plans, edges, nominal)
     write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options, bridged))
