@@ -77,6 +77,44 @@ def test_two_halves_of_an_orbit_without_a_common_image_are_bridged(tmp_path):
     assert len(find_bridges(payload, MapperOptions(), parts, finished=[True, False])) == 1
 
 
+def _part(payload, poses: dict, names: list[str], moved: bool):
+    """``(poses, camera parameters, points)`` of a local model of ``names`` (``_half``), its
+    points left to the re-triangulation from its poses."""
+    model = _half(payload, poses, names, moved)
+    pose_of = {im.name: (im.cam_from_world_rotation, im.cam_from_world_translation) for im in model.images.values()}
+    no_points = ([], np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
+    return pose_of, {c: cam.params for c, cam in model.cameras.items()}, no_points
+
+
+def test_a_part_that_joins_no_single_part_is_tried_again_against_their_union(tmp_path, monkeypatch):
+    payload, poses = _orbit(tmp_path)
+    names = sorted(poses)  # along the orbit
+    # two arcs that meet where the orbit closes, and the short arc between their other ends
+    arcs = [names[:7], names[9:], names[7:9]]
+    parts = [_part(payload, poses, arc, moved) for arc, moved in zip(arcs, (False, True, False))]
+    index = {n: i for i, n in enumerate(payload.names)}
+    first_two = [index[n] for n in arcs[0] + arcs[1]]
+    short = {index[n] for n in arcs[2]}
+    [alone] = find_bridges(payload, MapperOptions(), [parts[0], parts[2]])  # the short arc and the first arc
+    real = bridging.estimate_similarity
+
+    def short_arc_only_to_both(state, finished, seed=0):
+        """The short arc seeing too few points of either arc alone to join it."""
+        if set(finished.images.tolist()) == short and not state.registered[first_two].all():
+            return None
+        return real(state, finished, seed)
+
+    monkeypatch.setattr(bridging, "estimate_similarity", short_arc_only_to_both)
+    first, second = find_bridges(payload, MapperOptions(), parts)
+    assert (first.into, first.moved) == (0, 1) and abs(first.into_from_moved.scale / SCALE - 1) < 0.01
+    # the short arc joins the union in the first arc's frame, from the rays of both arcs' points
+    assert (second.into, second.moved) == (0, 2)
+    assert abs(second.into_from_moved.scale - 1) < 0.01
+    assert np.degrees(Rotation.from_matrix(second.into_from_moved.rotation).magnitude()) < 0.3
+    np.testing.assert_allclose(second.into_from_moved.translation, 0.0, atol=0.01)
+    assert second.rays > alone.rays
+
+
 def _model(label: str, num_images: int) -> LocalModel:
     recon = Reconstruction()
     for k in range(num_images):

@@ -17,7 +17,9 @@ accepted with at least ``abs_pose_min_num_inliers`` inliers within ``abs_pose_ma
 pixels, ``abs_pose_min_inlier_ratio`` of the rays, in two images or more.  Each part is the
 merged model of its own merge plan (its local models in its anchor's frame, with their own
 points and the tracks their poses triangulate), so the similarity found maps one anchor's
-frame into the other's: a cluster-graph edge between the two anchors.
+frame into the other's: a cluster-graph edge between the two anchors.  As the mapper grows one
+model, a part that joins another becomes one with it, and the parts left are tried again
+against their union: a part may see too few points of each of two parts alone.
 
 A bridge is weaker evidence than an edge from common cameras (its inliers are rays at PnP's
 threshold, not camera poses both models estimated): it is weighted above every edge the merge
@@ -33,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from backend.sim3 import Sim3
-from sfm.mapper.joining import FinishedModel, estimate_similarity
+from sfm.mapper.joining import FinishedModel, estimate_similarity, join
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.payload import MapperInput
 from sfm.mapper.state import MapperState
@@ -72,31 +74,54 @@ def part_models(state: MapperState, parts: list[tuple[dict, dict, tuple]]) -> li
 
 def find_bridges(payload: MapperInput, opts: MapperOptions, parts: list[tuple[dict, dict, tuple]],
                  seed: int = 0, finished: list[bool] | None = None) -> list[Bridge]:
-    """Every pair of ``parts`` (``(poses, camera parameters, points)`` of each merge plan, in
-    the plans' order) that a similarity joins on PnP's terms (module docstring), the larger part
-    as ``into``.  ``payload``: the images of all the parts and their verified matches.
-    ``finished``: parts that are models of an earlier run (``graphsfm extend``): two of them are
-    not tried together, as that run kept them apart."""
+    """The bridges that join ``parts`` (``(poses, camera parameters, points)`` of each merge
+    plan, in the plans' order) on PnP's terms (module docstring), found as the mapper joins its
+    models: the larger of two parts receives the other, their union (in the receiver's frame,
+    its tracks triangulated again) is one part from then on, and the parts are tried again
+    until no pair joins: a small part may see too few points of any one part, yet enough of
+    two joined ones.  ``into`` and ``moved`` name the parts whose frames a bridge relates (each
+    union keeps its receiver's frame).  ``payload``: the images of all the parts and their
+    verified matches.  ``finished``: parts that are models of an earlier run (``graphsfm
+    extend``): two unions of only such parts are not tried together, as that run kept them
+    apart."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # the parts are final: nothing registers a dropped image again
-    models = part_models(state, parts)
+    unions = dict(enumerate(part_models(state, parts)))  # frame's part -> the union in its frame
+    members = {k: {k} for k in unions}
     finished = finished or [False] * len(parts)
+    failed: set[tuple[frozenset, frozenset]] = set()
     bridges = []
-    for a in range(len(models)):
-        for b in range(a + 1, len(models)):
-            if finished[a] and finished[b]:
-                continue
-            into, moved = (a, b) if models[a].size >= models[b].size else (b, a)
-            current = models[into]
-            registered, R, t, track_valid, track_xyz = current.arrays(state)
-            state.load_model(registered, R, t, track_xyz, track_valid, current.params)
-            found = estimate_similarity(state, models[moved], seed)
-            if found is None:
-                log.info("merge: parts %d and %d: no similarity from the rays between them", into, moved)
-                continue
-            log.info("merge: part %d joins part %d from %d of %d rays", moved, into, found.inliers, found.rays)
-            common = len(np.intersect1d(models[into].images, models[moved].images))
-            bridges.append(Bridge(into, moved, Sim3(found.scale, found.R, found.t), found.inliers, found.rays, common))
+    joined = True
+    while joined:
+        joined = False
+        order = sorted(unions, key=lambda k: (-unions[k].size, k))
+        for x, a in enumerate(order):
+            for b in order[x + 1:]:
+                key = (frozenset(members[a]), frozenset(members[b]))
+                if key in failed or all(finished[k] for k in members[a] | members[b]):
+                    continue
+                into = unions[a]
+                registered, R, t, track_valid, track_xyz = into.arrays(state)
+                state.load_model(registered, R, t, track_xyz, track_valid, into.params)
+                found = estimate_similarity(state, unions[b], seed)
+                if found is None:
+                    log.info("merge: parts %s and %s: no similarity from the rays between them",
+                             sorted(members[a]), sorted(members[b]))
+                    failed.add(key)
+                    continue
+                log.info("merge: parts %s join parts %s from %d of %d rays", sorted(members[b]), sorted(members[a]),
+                         found.inliers, found.rays)
+                common = len(np.intersect1d(into.images, unions[b].images))
+                bridges.append(Bridge(a, b, Sim3(found.scale, found.R, found.t), found.inliers, found.rays, common))
+                join(state, unions[b], found)  # the larger receives: the union stays in a's frame
+                state.retriangulate()
+                unions[a] = FinishedModel.of(state)
+                members[a] |= members.pop(b)
+                del unions[b]
+                joined = True
+                break
+            if joined:
+                break
     return bridges
 
 
