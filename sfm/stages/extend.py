@@ -338,10 +338,10 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     edges, plans = plan_extension(nodes, o.merge, seed=o.mapper.seed)
     with Database(ext.ws / DATABASE, readonly=True) as database:
         nominal = {cam_id: cam.params for cam_id, cam in database.read_cameras().items()}
-    if len(plans) > 1:  # parts no common cameras align: bridged where their photos see each other's points
+    finished = [all(n < num_old for n in p.clusters) for p in plans]
+    if not all(finished[1:]):  # new models no common cameras align: bridged where their photos see the others' points
         parts, _ = align_components(nodes, plans, edges, nominal)
-        found = bridge_parts(ext.ws / DATABASE, o.mapper, o.merge, plans, parts,
-                             finished=[all(n < num_old for n in p.clusters) for p in plans])
+        found = bridge_parts(ext.ws / DATABASE, o.mapper, o.merge, plans, parts, finished=finished)
         if found:
             edges.update(found)
             plans = extension_plans(nodes, edges)
