@@ -96,13 +96,15 @@ def find_bridges(payload: MapperInput, opts: MapperOptions, parts: list[tuple[di
         joined = False
         order = sorted(unions, key=lambda k: (-unions[k].size, k))
         for x, a in enumerate(order):
+            into, loaded = unions[a], False
             for b in order[x + 1:]:
                 key = (frozenset(members[a]), frozenset(members[b]))
                 if key in failed or all(finished[k] for k in members[a] | members[b]):
                     continue
-                into = unions[a]
-                registered, R, t, track_valid, track_xyz = into.arrays(state)
-                state.load_model(registered, R, t, track_xyz, track_valid, into.params)
+                if not loaded:  # the receiver is the state's current model for all its tries
+                    registered, R, t, track_valid, track_xyz = into.arrays(state)
+                    state.load_model(registered, R, t, track_xyz, track_valid, into.params)
+                    loaded = True
                 found = estimate_similarity(state, unions[b], seed)
                 if found is None:
                     log.info("merge: parts %s and %s: no similarity from the rays between them",

@@ -54,11 +54,10 @@ def load_local_models(workspace: Path) -> list[LocalModel]:
     return out
 
 
-def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions,
-               bridged: bool = False) -> dict:
+def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> dict:
     """The content of ``WORK/merge.json``: the cluster graph's nodes and edges (bridges among
     them), each merge component's MinST, anchor and layers, and why the components after the
-    first stayed apart (``bridged``: bridging was tried)."""
+    first stayed apart (the merge tried to bridge every part)."""
     return {
         "nodes": [{"id": k, "label": m.label, "images": len(m.model.images), "points": len(m.model.points3D)} for k, m in enumerate(models)],
         "edges": [
@@ -74,7 +73,7 @@ def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], op
              "path": {str(k): list(v) for k, v in p.path.items()}, "num_layers": p.num_layers}
             for p in plans
         ],
-        "unjoined": unjoined_parts(models, edges, plans, options, bridged),
+        "unjoined": unjoined_parts(models, edges, plans, options, bridged=True),
     }
 
 
@@ -143,14 +142,13 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     with Database(workspace / DATABASE, readonly=True) as db:
         nominal = {cam_id: cam.params for cam_id, cam in db.read_cameras().items()}
     components, all_sims = align_components(models, plans, edges, nominal)
-    bridged = len(plans) > 1
-    if bridged:
+    if len(plans) > 1:
         found = bridge_parts(workspace / DATABASE, mapper_options, options, plans, components)
         if found:
             edges.update(found)
             plans = plan_components(models, edges)
             components, all_sims = align_components(models, plans, edges, nominal)
-    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options, bridged))
+    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options))
     labels = [m.label for m in models]
     local_points = sum(len(m.model.points3D) for m in models)
     if recorder.enabled:
