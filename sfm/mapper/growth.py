@@ -26,7 +26,7 @@ import numpy as np
 
 from backend.camera_models import calibration_matrix
 from sfm.mapper.output import mean_colors
-from sfm.mapper.state import MapperState
+from sfm.mapper.state import MIN_POSE_POINTS, MapperState
 
 
 ALL_POSES_UP_TO = 10  # images: young models move a lot (as EARLY_GLOBAL_BA_IMAGES)
@@ -184,6 +184,9 @@ def left_out_reason(state: MapperState, i: int) -> str:
     if len(state.image_rows[i]) == 0:
         return f"no pair with {opts.min_num_matches}+ verified inliers inside the cluster"
     visible = len(state.visible_points(i)[0])
+    if state.unsupported[i]:
+        return (f"registered, but left the model {state.unsupported[i]} time(s) keeping fewer than "
+                f"{MIN_POSE_POINTS} points after a BA's filtering: nothing determined its pose")
     if state.failed[i]:
         return (f"PnP RANSAC failed {state.failed[i]} time(s), the last with {state.fail_visible[i]} model points "
                 f"in view (it needs {opts.abs_pose_min_num_inliers} inliers, {opts.abs_pose_min_inlier_ratio:.0%} of them)")

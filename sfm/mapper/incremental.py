@@ -83,8 +83,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
         report()
         if growth is not None:
             growth.record(state, adjuster.last_rms, list(np.flatnonzero(state.registered)))
-        grow(state, adjuster, growth, report)
-        final_refinement(state, adjuster)
+        grow_and_refine(state, adjuster, growth, report)
         moved = state.guessed_focal_moves(FOCAL_RESTART_RATIO)
         if moved and restarts < MAX_FOCAL_RESTARTS:
             restarts += 1
@@ -102,8 +101,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
             if joined.kept is not None:
                 models[:] = [m for m in models if m is not joined.kept]
             closed -= joined.size
-            grow(state, adjuster, growth, report)
-            final_refinement(state, adjuster)
+            grow_and_refine(state, adjuster, growth, report)
         model = to_reconstruction(state)
         n = state.num_registered
         closed += n
@@ -126,8 +124,10 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
 
 def grow(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, report) -> None:
     """Register images into the current model while any passes (PnP, then structure-less),
-    triangulating what each newly sees, with a local BA after each and a global BA (and
-    re-triangulation) whenever the model has grown by ``global_ba_ratio``; ``report()`` after
+    triangulating what each newly sees, with a local BA after each and a global BA (then
+    re-triangulation, and the images left without the points to fix their poses leave:
+    ``MapperState.drop_unsupported_images``) whenever the model has grown by
+    ``global_ba_ratio``; ``report()`` after
     each registration.  A failed image is retried once it sees 20% more points (cheap on large
     clusters); when nothing else registers, with any growth (at most MAX_REG_TRIALS failures),
     then without PnP."""
@@ -138,6 +138,7 @@ def grow(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, re
         if state.num_registered >= opts.global_ba_ratio * last_global or state.num_registered <= EARLY_GLOBAL_BA_IMAGES:
             adjuster.global_()  # covers what the local BA would adjust
             state.retriangulate()
+            state.drop_unsupported_images()
             last_global = state.num_registered
         else:
             adjuster.local(state.last_registered)
@@ -165,12 +166,27 @@ def join_a_finished_model(state: MapperState, adjuster: BundleAdjuster, finished
         del finished[k]
         adjuster.global_()
         state.retriangulate()
+        state.drop_unsupported_images()
         if growth is not None:
             if candidate.growth_index is not None:
                 growth.absorb(candidate.growth_index, how)
             growth.record(state, adjuster.last_rms, images.tolist())
         return candidate
     return None
+
+
+def grow_and_refine(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, report) -> None:
+    """:func:`grow`, then :func:`final_refinement`; when the refinement's filtering leaves an
+    image too few points to determine its pose (``MapperState.drop_unsupported_images``), the
+    model grows again, as it may register that image anew, and is refined again if it did."""
+    grow(state, adjuster, growth, report)
+    final_refinement(state, adjuster)
+    while state.drop_unsupported_images():
+        before = state.num_registered
+        grow(state, adjuster, growth, report)
+        if state.num_registered == before:
+            return
+        final_refinement(state, adjuster)
 
 
 def final_refinement(state: MapperState, adjuster: BundleAdjuster) -> None:

@@ -30,6 +30,9 @@ MAX_REG_TRIALS = 3  # failures after which a stalled model stops retrying an ima
 # Registered images from which a camera with degenerate intrinsics takes its images out of the
 # model (COLMAP's IncrementalMapper::FilterImages waits for 20).
 MIN_IMAGES_FOR_CAMERA_FILTER = 20
+# Points an image must keep to stay in the model: a pose has six unknowns and a point gives two
+# equations, so fewer than three (P3P's minimum) leave the pose undetermined.
+MIN_POSE_POINTS = 3
 
 
 def track_rows(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,6 +123,7 @@ class MapperState:
         self.failed = np.zeros(n, dtype=np.int64)
         self.fail_visible = np.zeros(n, dtype=np.int64)
         self.structureless_failed: dict[int, int] = {}
+        self.unsupported = np.zeros(n, dtype=np.int64)  # drops for too few points (drop_unsupported_images)
         self.params = [np.array(c.params, dtype=np.float64) for c in self.priors]
         for c, focal in self.start_focals.items():
             self.params[c] = self._with_focal(c, focal)
@@ -474,6 +478,35 @@ class MapperState:
                 self.failed[i] += 1
                 self.fail_visible[i] = len(self.visible_points(i)[0])
                 self.structureless_failed[i] = int(self.fail_visible[i])
+
+    def drop_unsupported_images(self) -> list[int]:
+        """The other half of COLMAP's image filter after a global BA: a registered image left
+        with fewer than :data:`MIN_POSE_POINTS` inlier points (its rows rejected by the filtering,
+        as where a model joined at a wrong scale or calibration fits nothing its images saw) has
+        a pose nothing determines any more.  It leaves the model and may register again by PnP
+        on the points it sees now; after ``MAX_REG_TRIALS`` such drops it counts as a failed
+        registration (retried once it sees 20% more points).  COLMAP drops an image with no
+        point left; one with one or two is as undetermined, and a BA that holds it is singular
+        wherever its covariance is asked (``sfm.mapper.self_calibration``).  Off with
+        ``camera_filter`` (nothing registers the images again), and never below a two-image
+        model.  Returns the images dropped."""
+        if not self.camera_filter:
+            return []
+        rows = np.flatnonzero(self.obs_inlier & self.track_valid[self.obs_track])
+        counts = np.bincount(self.obs_image[rows], minlength=len(self.names))
+        dropped = np.flatnonzero(self.registered & (counts < MIN_POSE_POINTS))
+        if len(dropped) == 0 or self.num_registered - len(dropped) < 2:
+            return []
+        log.info("%s: %s kept fewer than %d points after the BA's filtering: they leave the model",
+                 self.payload.label, ", ".join(f"{self.names[i]} ({counts[i]})" for i in dropped), MIN_POSE_POINTS)
+        self.registered[dropped] = False
+        self.num_registered -= len(dropped)
+        for i in dropped:
+            self.obs_inlier[self.image_rows[i]] = False
+        self.unsupported[dropped] += 1
+        for i in dropped[self.unsupported[dropped] >= MAX_REG_TRIALS]:
+            self.note_failure(int(i), len(self.visible_points(i)[0]))
+        return dropped.tolist()
 
     def filter_observations(self, tracks: np.ndarray) -> None:
         """Drop rows above ``max_reproj_error`` and points left with < 2 rows or too small an
