@@ -31,7 +31,9 @@ Design, the loop (``sfm.mapper.incremental``):
    camera only when all of that camera's registered images are free in it); a global BA, re-triangulation
    and filtering whenever the model has grown by ``global_ba_ratio`` (1.2), and after every
    image while the model is young.  A camera whose refined intrinsics leave the range a lens can
-   have takes its images out of the model (COLMAP's filter).
+   have takes its images out of the model, and so does an image left with fewer than the three
+   points that fix a pose (COLMAP's filter, which drops an image with none); such an image may
+   register again.
 6. When no image registers any more: final BAs to a tighter tolerance, then an earlier model
    of the cluster that shares no image with this one, but whose points its images see or the
    other way round, joins it as a whole, registered by one similarity from all the rays
