@@ -92,6 +92,11 @@ def _halves(shift_a, shift_b, std=1.0):
     ((6.0, -4.0), (6.0, -4.0), True, 0.0, 104.0),
     # halves 2 px apart with std 1 each: chi2 2 over 2 dof, within their covariances, no widening
     ((5.0, -4.0), (7.0, -4.0), True, 2.0, 104.0),
+    # 4 px apart: chi2 8, still the scatter their covariances predict (below 11.83): the mean
+    # (4, -1) keeps its covariance, chi2 34 (widened by the Birge ratio 8 / 2 it would be 8.5)
+    ((2.0, -1.0), (6.0, -1.0), True, 8.0, 34.0),
+    # 6 px apart: chi2 18, they disagree; widened by 18 / 2 the same mean falls to 34 / 9
+    ((1.0, -1.0), (7.0, -1.0), False, 18.0, 34.0 / 9.0),
     # a shift one end of the path shows and the other does not: d = (0, 32), chi2 512, widened by 256
     ((0.0, 4.0), (0.0, 36.0), False, 512.0, 400.0 / (0.5 * 256.0)),
 ])
@@ -112,9 +117,9 @@ def test_a_half_that_sees_the_principal_point_less_well_counts_for_less():
     """One half determines the shift to 1 px, the other to 1.5 px; both can see the whole
     model's shift (5, -3) (chi2 34 and 15.1 with their own covariances, above 11.83).  Their
     weighted mean (5.38, -3.38), each half weighed by its inverse covariance, has chi2 58.4;
-    their difference (2, -2) has chi2 8 / 3.25 = 2.46 over 2 degrees of freedom, which widens
-    the mean's covariance by 1.23 to chi2 47.5, still significant.  Halves that show opposite
-    shifts precisely disagree and are held."""
+    their difference (2, -2) has chi2 8 / 3.25 = 2.46, within what their covariances predict
+    (11.83), so the mean's covariance is not widened.  Halves that show opposite shifts
+    precisely disagree and are held."""
     estimate = NOMINAL.copy()
     estimate[[3, 4]] += (5.0, -3.0)
     screened = check_principal_point(NOMINAL, estimate, _covariance(1.0), FREE)
@@ -127,9 +132,9 @@ def test_a_half_that_sees_the_principal_point_less_well_counts_for_less():
     weight = 1.0 / (1.0 + 1.0 / 2.25)
     mean = weight * (np.array([6.0, -4.0]) + np.array([4.0, -2.0]) / 2.25)
     np.testing.assert_allclose(mean, [5.385, -3.385], atol=1e-3)
-    widened = mean @ mean / weight / (test.halves_chi2 / 2)
-    assert f"chi2 {widened:.1f} of the halves' weighted mean shift" in test.reason
-    assert widened == pytest.approx(47.47, abs=0.01)
+    mean_chi2 = mean @ mean / weight
+    assert f"chi2 {mean_chi2:.1f} of the halves' weighted mean shift" in test.reason
+    assert mean_chi2 == pytest.approx(58.43, abs=0.01)
     test = confirm_by_halves(screened, NOMINAL, ((a, _covariance(1.0)), (NOMINAL - a + NOMINAL, _covariance(1.0))))
     assert not test.accepted and test.reason.startswith("not reproducible")
 

@@ -25,9 +25,11 @@ a split-sample check:
   (:func:`confirm_by_halves`): their weighted mean (the minimum-variance combination of two
   independent estimates, each weighed by its inverse covariance, so a half that sees the
   principal point poorly counts for little), with its covariance widened by the Birge ratio of
-  metrology where they disagree more than their covariances say (``d^T (C_a + C_b)^-1 d`` for
-  the difference ``d``, the chi-square of the two about their weighted mean, over its 2
-  degrees of freedom: 1 on average when the covariances are right).  This is split-sample
+  metrology where they disagree beyond their covariances (``d^T (C_a + C_b)^-1 d`` for the
+  difference ``d``, the chi-square of the two about their weighted mean, above the same 3-sigma
+  quantile; the ratio is that chi-square over its 2 degrees of freedom, 1 on average when the
+  covariances are right).  A chi-square within the quantile is the scatter the covariances
+  predict, and widening by it would discount halves that agree.  This is split-sample
   validation: the principal point is one constant of the camera, so independent photos of it
   must give the same value.  A shift that is instead lens or sensor error the camera model
   lacks (decentering distortion, a sensor not parallel to the lens, rolling shutter), which the
@@ -139,10 +141,11 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     shift, ``s^T C_a^-1 s`` or ``s^T C_b^-1 s`` of the whole model's shift ``s`` at most
     :data:`SIGNIFICANCE_CHI2`, and the halves agree, ``d^T (C_a + C_b)^-1 d`` at most the same,
     ``test`` stands (refined).  Otherwise refined only if the halves' weighted mean shift from
-    the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with ``C_m = (C_a^-1 + C_b^-1)^-1``, is significant with ``C_m`` times the squared Birge ratio
-    ``max(1, d^T (C_a + C_b)^-1 d / 2)`` of their difference ``d = p_a - p_b``:
-    ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`.  Halves of equal covariance give the plain
-    mean with ``C_m = C_a / 2``."""
+    the nominal value, ``m = C_m (C_a^-1 p_a + C_b^-1 p_b) - nominal`` with ``C_m = (C_a^-1 +
+    C_b^-1)^-1``, is significant: ``m^T C_m^-1 m`` above :data:`SIGNIFICANCE_CHI2`, with ``C_m``
+    times the squared Birge ratio ``d^T (C_a + C_b)^-1 d / 2`` of their difference ``d = p_a -
+    p_b`` where the halves disagree (that chi-square above :data:`SIGNIFICANCE_CHI2` too).
+    Halves of equal covariance give the plain mean with ``C_m = C_a / 2``."""
     if halves is None:
         return replace(test, accepted=False, reason=f"halves not estimable (fewer than {MIN_HALF_IMAGES} images each, "
                                                     "or singular)")
@@ -166,9 +169,11 @@ def confirm_by_halves(test: PrincipalPointTest, nominal_ds2: np.ndarray,
     except np.linalg.LinAlgError:
         return replace(test, accepted=False, reason="halves not estimable (singular covariance)", halves_shift=shifts)
     mean = cov_mean @ (info_a @ pa + info_b @ pb) - nominal
-    widened = float(mean @ np.linalg.solve(cov_mean * max(1.0, chi2 / 2.0), mean))
+    disagree = chi2 > SIGNIFICANCE_CHI2
+    widened = float(mean @ np.linalg.solve(cov_mean * (chi2 / 2.0 if disagree else 1.0), mean))
     if widened <= SIGNIFICANCE_CHI2:
+        spread = " with their spread" if disagree else ""
         return replace(test, accepted=False, halves_shift=shifts, halves_chi2=chi2,
-                       reason=f"not reproducible: chi2 {widened:.1f} of the halves' weighted mean shift with their spread")
+                       reason=f"not reproducible: chi2 {widened:.1f} of the halves' weighted mean shift{spread}")
     return replace(test, halves_shift=shifts, halves_chi2=chi2,
                    reason=f"significant, determinable and reproducible: chi2 {widened:.1f} of the halves' weighted mean shift")
