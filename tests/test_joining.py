@@ -76,9 +76,11 @@ def test_the_similarity_between_two_arcs_of_an_orbit_is_found_and_joins_them(tmp
     assert _rotation_error_deg(sim.R, ROTATION) < 0.3  # one essential matrix's rotation; the BAs refine it
     np.testing.assert_allclose(sim.t, SHIFT, atol=0.02 * np.linalg.norm(SHIFT))
 
+    state.used[:8] = True  # as the mapper leaves a closed model's images
     joined = join(state, finished, sim)  # equal sizes: the current model's frame stays
     np.testing.assert_array_equal(joined, np.arange(8))
     assert state.registered.all() and state.num_registered == 16
+    assert not state.used.any()  # the current model's now: free again if a BA's filtering drops them
     for i in range(16):
         assert _rotation_error_deg(state.R[i], R[i]) < 0.3
     centres, true_centres = state.centers(np.arange(16)), -np.einsum("nji,nj->ni", R, t)

@@ -125,12 +125,11 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
 def grow(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, report) -> None:
     """Register images into the current model while any passes (PnP, then structure-less),
     triangulating what each newly sees, with a local BA after each and a global BA (then
-    re-triangulation, and the images left without the points to fix their poses leave:
+    re-triangulation, and the images left without the points that fix a pose leave:
     ``MapperState.drop_unsupported_images``) whenever the model has grown by
-    ``global_ba_ratio``; ``report()`` after
-    each registration.  A failed image is retried once it sees 20% more points (cheap on large
-    clusters); when nothing else registers, with any growth (at most MAX_REG_TRIALS failures),
-    then without PnP."""
+    ``global_ba_ratio``; ``report()`` after each registration.  A failed image is retried once
+    it sees 20% more points (cheap on large clusters); when nothing else registers, with any
+    growth (at most MAX_REG_TRIALS failures), then without PnP."""
     opts = state.opts
     last_global = state.num_registered
     while register_next(state) or register_structureless(state):
@@ -144,7 +143,8 @@ def grow(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, re
             adjuster.local(state.last_registered)
         report()
         if growth is not None:
-            growth.record(state, adjuster.last_rms, [state.last_registered])
+            new = state.last_registered  # a global BA's filtering may have dropped it again
+            growth.record(state, adjuster.last_rms, [new] if state.registered[new] else [])
 
 
 def join_a_finished_model(state: MapperState, adjuster: BundleAdjuster, finished: list[FinishedModel],

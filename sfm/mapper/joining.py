@@ -269,6 +269,7 @@ def join(state: MapperState, finished: FinishedModel, sim: Similarity) -> np.nda
     re-triangulation.  Each camera takes the intrinsics of the model that holds more of its
     images.  Returns the images the current model did not hold."""
     current = state.registered.copy()
+    state.used[finished.images] = False  # no longer a finished model's: the current one's, free if it drops them
     finished = _Arrays(*finished.arrays(state), finished.params)
     params = [finished.params[c] if np.sum(finished.registered & (state.cam_index == c)) > np.sum(current & (state.cam_index == c))
               else state.params[c] for c in range(len(state.priors))]
