@@ -92,6 +92,7 @@ def test_an_image_left_with_too_few_points_leaves_and_may_register_again(orbit):
         assert state.drop_unsupported_images() == [3] and state.unsupported[3] == drop
     assert state.failed[3] == 1  # now a failed registration: retried once it sees 20% more points
     assert 3 not in state.next_image_candidates()
+    assert state.structureless_failed[3] == state.fail_visible[3] > 0  # structure-less registration waits too
     assert state.drop_unsupported_images() == []
 
 

@@ -485,7 +485,7 @@ class MapperState:
         as where a model joined at a wrong scale or calibration fits nothing its images saw) has
         a pose nothing determines any more.  It leaves the model and may register again by PnP
         on the points it sees now; after ``MAX_REG_TRIALS`` such drops it counts as a failed
-        registration (retried once it sees 20% more points).  COLMAP drops an image with no
+        registration, by PnP and without (retried once it sees 20% more points).  COLMAP drops an image with no
         point left; one with one or two is as undetermined, and a BA that holds it is singular
         wherever its covariance is asked (``sfm.mapper.self_calibration``).  Off with
         ``camera_filter`` (nothing registers the images again), and never below a two-image
@@ -506,6 +506,7 @@ class MapperState:
         self.unsupported[dropped] += 1
         for i in dropped[self.unsupported[dropped] >= MAX_REG_TRIALS]:
             self.note_failure(int(i), len(self.visible_points(i)[0]))
+            self.structureless_failed[int(i)] = int(self.fail_visible[i])  # nor without PnP
         return dropped.tolist()
 
     def filter_observations(self, tracks: np.ndarray) -> None:
