@@ -466,18 +466,26 @@ class MapperState:
                 continue  # held, unused, sound, or already so as given: nothing to go back to
             log.info("%s: camera %d has degenerate intrinsics %s after BA: %d image(s) leave the model",
                      self.payload.label, c, np.array2string(self.params[c], precision=4), len(images))
-            self.registered[images] = False
-            for i in images:
-                self.obs_inlier[self.image_rows[i]] = False
-            self.num_registered -= len(images)
+            self._take_out(images)
             self.params[c] = np.array(prior.params, dtype=np.float64)
             dropped.extend(images.tolist())
         if dropped:
             self._update_normalised()
-            for i in dropped:  # retried once they see 20% more points (PnP and structure-less)
-                self.failed[i] += 1
-                self.fail_visible[i] = len(self.visible_points(i)[0])
-                self.structureless_failed[i] = int(self.fail_visible[i])
+            for i in dropped:
+                self._fail_until_more_points(i)
+
+    def _take_out(self, images: np.ndarray) -> None:
+        """``images`` leave the current model: unregistered, none of their rows an inlier."""
+        self.registered[images] = False
+        self.num_registered -= len(images)
+        for i in images:
+            self.obs_inlier[self.image_rows[i]] = False
+
+    def _fail_until_more_points(self, i: int) -> None:
+        """Image ``i`` counts as failed now: PnP and structure-less registration retry it once it
+        sees 20% more points than it does."""
+        self.note_failure(int(i), len(self.visible_points(i)[0]))
+        self.structureless_failed[int(i)] = int(self.fail_visible[i])
 
     def drop_unsupported_images(self) -> list[int]:
         """The other half of COLMAP's image filter after a global BA: a registered image left
@@ -485,11 +493,11 @@ class MapperState:
         as where a model joined at a wrong scale or calibration fits nothing its images saw) has
         a pose nothing determines any more.  It leaves the model and may register again by PnP
         on the points it sees now; after ``MAX_REG_TRIALS`` such drops it counts as a failed
-        registration, by PnP and without (retried once it sees 20% more points).  COLMAP drops an image with no
-        point left; one with one or two is as undetermined, and a BA that holds it is singular
-        wherever its covariance is asked (``sfm.mapper.self_calibration``).  Off with
-        ``camera_filter`` (nothing registers the images again), and never below a two-image
-        model.  Returns the images dropped."""
+        registration, by PnP and without (retried once it sees 20% more points).  COLMAP drops
+        an image with no point left; one with one or two is as undetermined, and a BA that holds
+        it is singular wherever its covariance is asked (``sfm.mapper.self_calibration``).  Off
+        with ``camera_filter`` (nothing registers the images again), and never below a
+        two-image model.  Returns the images dropped."""
         if not self.camera_filter:
             return []
         rows = np.flatnonzero(self.obs_inlier & self.track_valid[self.obs_track])
@@ -499,14 +507,10 @@ class MapperState:
             return []
         log.info("%s: %s kept fewer than %d points after the BA's filtering: they leave the model",
                  self.payload.label, ", ".join(f"{self.names[i]} ({counts[i]})" for i in dropped), MIN_POSE_POINTS)
-        self.registered[dropped] = False
-        self.num_registered -= len(dropped)
-        for i in dropped:
-            self.obs_inlier[self.image_rows[i]] = False
+        self._take_out(dropped)
         self.unsupported[dropped] += 1
         for i in dropped[self.unsupported[dropped] >= MAX_REG_TRIALS]:
-            self.note_failure(int(i), len(self.visible_points(i)[0]))
-            self.structureless_failed[int(i)] = int(self.fail_visible[i])  # nor without PnP
+            self._fail_until_more_points(i)
         return dropped.tolist()
 
     def filter_observations(self, tracks: np.ndarray) -> None:
