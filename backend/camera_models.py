@@ -87,8 +87,13 @@ def default_params(model: str, width: int, height: int, focal: float) -> Array:
     return params
 
 
+# The largest magnitude of a distortion parameter a lens has (COLMAP's mapper option
+# max_extra_param): beyond it, a bundle adjustment has traded the parameter against the geometry.
+MAX_EXTRA_PARAM = 1.0
+
+
 def has_bogus_params(model: str, params: Array, width: int, height: int, min_focal_ratio: float = 0.1,
-                     max_focal_ratio: float = 10.0, max_extra_param: float = 1.0) -> bool:
+                     max_focal_ratio: float = 10.0, max_extra_param: float = MAX_EXTRA_PARAM) -> bool:
     """COLMAP's test for intrinsics a bundle adjustment has driven somewhere no lens is (its
     mapper's defaults): a focal length outside [0.1, 10] x the longer image side, a principal
     point outside the image, a distortion parameter above 1 in magnitude, or anything not

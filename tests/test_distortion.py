@@ -76,6 +76,28 @@ def test_without_a_covariance_or_with_a_singular_one_the_distortion_is_refined_a
     assert test.accepted and test.reason == "singular covariance: refined as COLMAP does"
 
 
+@pytest.mark.parametrize("model, index, value, accepted", [
+    ("SIMPLE_RADIAL", 5, -0.99, True),  # a strong barrel distortion, but a lens's
+    ("SIMPLE_RADIAL", 5, -1.01, False),
+    ("SIMPLE_RADIAL", 5, 3.5, False),
+    ("OPENCV", 8, 1.2, False),  # any parameter of the model counts, tangential ones too
+    ("SIMPLE_RADIAL", 5, float("nan"), False),
+])
+def test_an_estimate_beyond_any_lens_is_held_however_significant(model, index, value, accepted):
+    """COLMAP's limit for a bogus camera (|parameter| <= 1): a small model can fit a wrong focal
+    length with such a distortion at a chi-square in the hundreds; with or without a covariance,
+    the final BA holds it."""
+    estimate = NOMINAL.copy()
+    estimate[index] = value
+    cov = np.diag([4.0, 4.0, 0.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4, 1e-4])  # std 0.01 of each distortion parameter
+    for covariance in (cov, None):
+        test = check_distortion(model, NOMINAL, estimate, covariance)
+        assert test.accepted == accepted
+        if not accepted:
+            assert test.reason == "beyond a lens: a parameter above 1 in magnitude"
+    assert check_distortion(model, NOMINAL, estimate, cov).std[distortion_components(model).index(index)] == pytest.approx(0.01)
+
+
 def test_holding_components_solves_the_normal_equations_of_the_rest():
     """With the information matrix L and the right-hand side e of the free components [f, u0, v0,
     k1], the step and covariance from them (L^-1 e, L^-1) restricted to [f, k1] are those of

@@ -21,7 +21,10 @@ as the model has distortion parameters at 99.73% (the two-sided 3-sigma level), 
 covariance from the BA (:func:`backend.bundle_adjustment.calibration_step`: poses and points
 marginalised out, scaled by the a-posteriori variance factor).  Otherwise the camera keeps its
 nominal distortion in that BA.  Without a covariance (a singular system) nothing shows the
-distortion undetermined, and it is refined, as COLMAP does.  The estimate and covariance are
+distortion undetermined, and it is refined, as COLMAP does.  An estimate no lens has, a parameter
+above ``MAX_EXTRA_PARAM`` in magnitude (COLMAP's limit for a bogus camera), is held whatever its
+chi-square: a small model's data can fit the geometry of a wrong focal length with such a value
+at high significance, and a final BA that refines it bends the model's poses by degrees.  The estimate and covariance are
 those of COLMAP's camera model, the principal point held where it is (:func:`hold_components`):
 the distortion is the first additional parameter a camera gets, and the principal point is
 tested after it (``sfm.mapper.principal_point``).  Freeing the principal point too would widen
@@ -41,6 +44,7 @@ import numpy as np
 from scipy.special import chdtri
 
 from backend.bundle_adjustment import free_ds2
+from backend.camera_models import MAX_EXTRA_PARAM
 
 # The probability of the two-sided 3-sigma interval, the level of the significance test.
 SIGNIFICANCE_LEVEL = 0.9973
@@ -109,15 +113,21 @@ class DistortionTest:
 def check_distortion(model: str, nominal_ds2: np.ndarray, estimate_ds2: np.ndarray,
                      covariance: np.ndarray | None) -> DistortionTest:
     """The test (module docstring) of an estimate against the nominal value, both Cal3DS2
-    vectors, with the estimate's (9, 9) covariance.  Without a usable covariance (None, or
-    singular) nothing shows the distortion undetermined: refined, as COLMAP does.  A model
-    without distortion parameters has nothing to hold: accepted."""
+    vectors, with the estimate's (9, 9) covariance.  An estimate beyond any lens (a parameter
+    above ``MAX_EXTRA_PARAM`` in magnitude, or not finite) is held.  Otherwise, without a usable
+    covariance (None, or singular) nothing shows the distortion undetermined: refined, as COLMAP
+    does.  A model without distortion parameters has nothing to hold: accepted."""
     comps = distortion_components(model)
     if not comps:
         return DistortionTest(True, (), (), 0.0, 0.0, "the model has no distortion")
-    shift = np.asarray(estimate_ds2, float)[comps] - np.asarray(nominal_ds2, float)[comps]
+    estimate = np.asarray(estimate_ds2, float)[comps]
+    shift = estimate - np.asarray(nominal_ds2, float)[comps]
     threshold = significance_chi2(len(comps))
     nan = tuple(float("nan") for _ in comps)
+    if not np.all(np.abs(estimate) <= MAX_EXTRA_PARAM):  # NaN fails too
+        std = nan if covariance is None else tuple(np.sqrt(np.maximum(np.diag(np.asarray(covariance, float))[comps], 0.0)))
+        return DistortionTest(False, tuple(shift), std, float("nan"), threshold,
+                              f"beyond a lens: a parameter above {MAX_EXTRA_PARAM:g} in magnitude")
     if covariance is None:
         return DistortionTest(True, tuple(shift), nan, float("nan"), threshold, "no covariance: refined as COLMAP does")
     cov = np.asarray(covariance, float)[np.ix_(comps, comps)]
