@@ -24,15 +24,15 @@ nominal distortion in that BA.  Without a covariance (a singular system) nothing
 distortion undetermined, and it is refined, as COLMAP does.  An estimate no lens has, a parameter
 above ``MAX_EXTRA_PARAM`` in magnitude (COLMAP's limit for a bogus camera), is held whatever its
 chi-square: a small model's data can fit the geometry of a wrong focal length with such a value
-at high significance, and a final BA that refines it bends the model's poses by degrees.  The estimate and covariance are
-those of COLMAP's camera model, the principal point held where it is (:func:`hold_components`):
-the distortion is the first additional parameter a camera gets, and the principal point is
-tested after it (``sfm.mapper.principal_point``).  Freeing the principal point too would widen
-the distortion's uncertainty by their correlation and hold the distortion of a real lens whose
-principal point is also off centre.  Every growing BA still refines the distortion (a young model
-needs it to register the next images); only the model's final BAs, with every image and every
-track, decide.  Nothing here depends on the scene: the test reads only the camera's estimates
-and their covariance.
+at high significance, and a final BA that refines it bends the model's poses by degrees.  The
+estimate and covariance are those of COLMAP's camera model, the principal point held where it is
+(:func:`hold_components`): the distortion is the first additional parameter a camera gets, and
+the principal point is tested after it (``sfm.mapper.principal_point``).  Freeing the principal
+point too would widen the distortion's uncertainty by their correlation and hold the distortion
+of a real lens whose principal point is also off centre.  Every growing BA still refines the
+distortion (a young model needs it to register the next images); only the model's final BAs,
+with every image and every track, decide.  Nothing here depends on the scene: the test reads
+only the camera's estimates and their covariance.
 """
 
 from __future__ import annotations
