@@ -44,11 +44,13 @@ Design, the loop (``sfm.mapper.incremental``):
    pose the cameras with the points three images or more see (a point two images see cannot
    expose a wrong match; it is re-estimated afterwards, unless an image needs it).  They refine what the
    photos determine of each camera (``intrinsics_refinement`` "auto", the default): its
-   distortion only when its difference from the nominal values is significant at 3 sigma (held
-   otherwise: a nadir block trades an undetermined distortion for a bent block); its principal
-   point only when its shift from the nominal value is significant at 3 sigma, its correlation
-   with the other intrinsics below 0.9, and the two halves of its images, each adjusted alone,
-   agree on it where each half can see the shift (held otherwise, as COLMAP always holds it).
+   distortion only when its difference from the nominal values is significant at 3 sigma and
+   within a lens's range, no parameter above 1 (held otherwise: a nadir block trades an
+   undetermined distortion for a bent block, and a small model grown at a wrong focal length
+   fits it with a distortion no lens has); its principal point only when its shift from the
+   nominal value is significant at 3 sigma, its correlation with the other intrinsics below
+   0.9, and the two halves of its images, each adjusted alone, agree on it where each half can
+   see the shift (held otherwise, as COLMAP always holds it).
 
 Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
 image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised
