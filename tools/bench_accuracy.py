@@ -94,6 +94,15 @@ def gt_sets(data: Path) -> list[str]:
     return sorted(d.name for d in data.iterdir() if (d / "images").is_dir() and (d / GT_TABLE).exists())
 
 
+def add_set_arguments(parser) -> None:
+    """``--data``, ``--sets`` and ``--out`` on a script's parser (this script's, and the scripts
+    that measure something else on the same sets)."""
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
+                        help="folder of the photo sets (default: %(default)s)")
+    parser.add_argument("--sets", nargs="+", help="set names (default: every set of --data with pose GT)")
+    parser.add_argument("--out", type=Path, help="output folder (default: a new temporary folder)")
+
+
 def path_order(centers: np.ndarray) -> np.ndarray:
     """Indices of camera centres (N, 3) in the order of the path that took them: a chain that
     starts at the centre farthest from their mean and goes on to the nearest centre not yet
@@ -332,10 +341,7 @@ def ordinal(n: int) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
-                        help="folder of the photo sets (default: %(default)s)")
-    parser.add_argument("--sets", nargs="+", help="set names (default: every set of --data with pose GT)")
-    parser.add_argument("--out", type=Path, help="output folder (default: a new temporary folder)")
+    add_set_arguments(parser)
     parser.add_argument("--recording", action="store_true", help="graphsfm's default run writes its Rerun recording")
     parser.add_argument("--no-colmap-frontend", action="store_true",
                         help="skip pycolmap's own extraction and matching (its mappers on graphsfm's database only)")

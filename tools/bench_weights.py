@@ -37,7 +37,7 @@ import cv2  # noqa: F401 - same reason
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_accuracy import GT_TABLE, evaluate_row, gt_sets, stamp
+from bench_accuracy import GT_TABLE, add_set_arguments, evaluate_row, gt_sets, stamp
 from bench_frontend import fresh
 from bench_mapping import run_colmap as run_colmap_mapper
 from benchmarks_page import add_page_arguments, markdown_table, publish, run_context
@@ -51,6 +51,10 @@ from sfm.io.database import Database
 MEDIAN_LENGTH_PER_SIGMA = math.sqrt(2.0 * math.log(2.0))
 # Bins with fewer observations than this are left out of the residual table.
 MIN_BIN_OBSERVATIONS = 200
+PAGE_INTRO = """graphsfm with keypoint-scale weights (the default) and with 1 px for every observation
+(`--no-scale-weights`, COLMAP's weights), from one database per set, beside COLMAP's mappers on that
+database; then the default model's residuals per keypoint-scale octave: a constant `spread/scale` is
+the weights' model, a falling one an error growing more slowly than the scale."""
 
 
 def database_of(data: Path, name: str, where: Path, accuracy_out: Path | None) -> Path:
@@ -131,10 +135,7 @@ def bench_set(data: Path, name: str, out: Path, accuracy_out: Path | None, conte
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
-                        help="folder of the photo sets (default: %(default)s)")
-    parser.add_argument("--sets", nargs="+", help="set names (default: every set of --data with pose GT)")
-    parser.add_argument("--out", type=Path, help="output folder (default: a new temporary folder)")
+    add_set_arguments(parser)
     parser.add_argument("--from", dest="accuracy_out", type=Path,
                         help="a tools/bench_accuracy.py --out folder whose graphsfm databases to map from "
                              "(default: extract and match each set here)")
@@ -149,11 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_weights_"))
     context = run_context()
     sections = [bench_set(args.data, name, out, args.accuracy_out, context) for name in names]
-    intro = ("graphsfm with keypoint-scale weights (the default) and with 1 px for every observation "
-             "(`--no-scale-weights`, COLMAP's weights), from one database per set, beside COLMAP's mappers on "
-             "that database; then the default model's residuals per keypoint-scale octave: a constant "
-             "`spread/scale` is the weights' model, a falling one an error growing more slowly than the scale.")
-    publish(args, "weights", "Observation weights", intro + "\n\n" + "\n".join(sections))
+    publish(args, "weights", "Observation weights", PAGE_INTRO + "\n\n" + "\n".join(sections))
     return 0
 
 
