@@ -89,8 +89,10 @@ def residuals_by_scale(model_dir: Path, database: Path) -> list[dict]:
         table = db.read_all_keypoints(sorted(set(image_ids.tolist())))
     if any(kp.shape[1] < 3 for kp in table.values()):
         return []  # no scales stored
-    scale = np.concatenate([table[i][keypoints[image_ids == i], 2] for i in dict.fromkeys(image_ids.tolist())])
-    error = np.concatenate([error[image_ids == i] for i in dict.fromkeys(image_ids.tolist())])
+    scale = np.empty(len(error))
+    for i, kp in table.items():
+        rows = image_ids == i
+        scale[rows] = kp[keypoints[rows], 2]
     edges = 0.8 * 2.0 ** np.arange(0.0, 8.5, 0.5)
     rows = []
     for low, high in itertools.pairwise(edges):

@@ -123,15 +123,13 @@ def check_distortion(model: str, nominal_ds2: np.ndarray, estimate_ds2: np.ndarr
     estimate = np.asarray(estimate_ds2, float)[comps]
     shift = estimate - np.asarray(nominal_ds2, float)[comps]
     threshold = significance_chi2(len(comps))
-    nan = tuple(float("nan") for _ in comps)
+    cov = None if covariance is None else np.asarray(covariance, float)[np.ix_(comps, comps)]
+    std = np.full(len(comps), np.nan) if cov is None else np.sqrt(np.maximum(np.diag(cov), 0.0))
     if not np.all(np.abs(estimate) <= MAX_EXTRA_PARAM):  # NaN fails too
-        std = nan if covariance is None else tuple(np.sqrt(np.maximum(np.diag(np.asarray(covariance, float))[comps], 0.0)))
-        return DistortionTest(False, tuple(shift), std, float("nan"), threshold,
+        return DistortionTest(False, tuple(shift), tuple(std), float("nan"), threshold,
                               f"beyond a lens: a parameter above {MAX_EXTRA_PARAM:g} in magnitude")
-    if covariance is None:
-        return DistortionTest(True, tuple(shift), nan, float("nan"), threshold, "no covariance: refined as COLMAP does")
-    cov = np.asarray(covariance, float)[np.ix_(comps, comps)]
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    if cov is None:
+        return DistortionTest(True, tuple(shift), tuple(std), float("nan"), threshold, "no covariance: refined as COLMAP does")
     singular = DistortionTest(True, tuple(shift), tuple(std), float("nan"), threshold,
                               "singular covariance: refined as COLMAP does")
     if not np.all(np.isfinite(cov)) or np.any(std <= 0):
