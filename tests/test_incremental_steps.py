@@ -388,7 +388,8 @@ def test_only_a_guessed_focal_length_of_a_camera_with_three_images_that_moved_pa
     state.registered[:3] = True
     assert state.guessed_focal_moves(3.0) == {}
     state.close_model()
-    assert state.start_focal(0) == 640.0 and state.camera_focal(0) == 640.0  # the next model starts from the prior
+    # the guess the restart rejected stays rejected: the next model starts from the restart's value
+    assert state.start_focal(0) == 2000.0 and state.camera_focal(0) == 2000.0
     from dataclasses import replace
 
     exif = MapperState(replace(payload, cameras={k: replace(c, prior_focal_length=True)
@@ -396,3 +397,57 @@ def test_only_a_guessed_focal_length_of_a_camera_with_three_images_that_moved_pa
     exif.registered[:3] = True
     exif.set_focal(0, 2000.0)
     assert exif.guessed_focal_moves(3.0) == {}
+
+
+def test_a_restart_frees_the_finished_models_grown_at_the_focal_length_it_rejects(tmp_path):
+    """``free_models_grown_far_from``: a finished model grown from a focal length more than
+    ``FOCAL_RESTART_RATIO`` from the restart's value is taken apart (its images free again, its
+    kept model and its recording no longer a model); one grown nearer to it stays."""
+    from sfm.mapper.growth import Growth
+    from sfm.mapper.joining import FinishedModel
+
+    _, payload = _narrow_ring_with_a_short_guess(tmp_path, 4.0)
+    state = MapperState(payload, MapperOptions())
+    growth = Growth("C0", state.names, 50)
+    finished, models = [], []
+    for images, start in ((range(4), None), (range(4, 8), 1000.0)):
+        if start is not None:
+            state.restart_model({0: start})
+        state.registered[list(images)] = True
+        state.num_registered = len(images)
+        growth.record(state, float("nan"), list(images))
+        growth.close(state)
+        kept = object()  # stands for the model's Reconstruction
+        models.append(kept)
+        finished.append(FinishedModel.of(state, kept, len(growth.models) - 1))
+        state.close_model()
+    assert [m.start_focals for m in finished] == [{0: 640.0}, {0: 1000.0}]
+    assert state.used[:8].all()
+
+    # 2000 px is 3.1 times 640 (beyond the ratio 3) and 2 times 1000 (within it)
+    freed = incremental.free_models_grown_far_from(state, {0: 2000.0}, finished, models, growth)
+    assert freed == 4
+    assert [m.start_focals for m in finished] == [{0: 1000.0}] and models == [finished[0].kept]
+    assert not state.used[:4].any() and state.used[4:8].all()
+    assert "640 px against 2000" in growth.models[0].taken_apart and not growth.models[1].taken_apart
+    growth.finish(3)
+    assert [m.rank for m in growth.models] == [-1, 0]
+    left_out = growth.left_out()
+    assert all(left_out[state.names[i]] != "registered only in a model of 4 images, fewer than the 3 a kept model needs"
+               for i in range(4))
+    assert incremental.free_models_grown_far_from(state, {0: 1200.0}, finished, models, growth) == 0
+    # the recording shows the model taken apart under its own name, and why
+    from rerun.chunk import RrdReader
+
+    from sfm.viz.mapping import log_growth
+    from sfm.viz.recorder import Recorder
+
+    with Recorder(tmp_path / "recording.rrd", tmp_path) as recorder:
+        log_growth(recorder, growth)
+    texts = {}
+    for chunk in RrdReader(str(tmp_path / "recording.rrd")).stream():
+        batch = chunk.to_record_batch()
+        if "TextDocument:text" in batch.schema.names:
+            texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
+    assert "640 px against 2000" in texts["/clusters/C0/taken_apart0/taken_apart"]
+    assert not any(path.startswith("/clusters/C0/model1") for path in texts)

@@ -34,23 +34,26 @@ Design, the loop (``sfm.mapper.incremental``):
    have takes its images out of the model, and so does an image left with fewer than the three
    points that fix a pose (COLMAP's filter, which drops an image with none); such an image may
    register again.
-6. When no image registers any more: final BAs to a tighter tolerance, then an earlier model
-   of the cluster that shares no image with this one, but whose points its images see or the
-   other way round, joins it as a whole, registered by one similarity from all the rays
-   between the two (on PnP's terms), and the model grows on; otherwise a new model from the
-   remaining images: several models are a result, not an error.  A model whose final BAs
-   moved a guessed focal length (no EXIF) more than 3 times away is grown again from the
-   refined value (at most twice): it was grown at a focal length it rejects.  The final BAs
-   pose the cameras with the points three images or more see (a point two images see cannot
-   expose a wrong match; it is re-estimated afterwards, unless an image needs it).  They refine what the
-   photos determine of each camera (``intrinsics_refinement`` "auto", the default): its
-   distortion only when its difference from the nominal values is significant at 3 sigma and
-   within a lens's range, no parameter above 1 (held otherwise: a nadir block trades an
-   undetermined distortion for a bent block, and a small model grown at a wrong focal length
-   fits it with a distortion no lens has); its principal point only when its shift from the
-   nominal value is significant at 3 sigma, its correlation with the other intrinsics below
-   0.9, and the two halves of its images, each adjusted alone, agree on it where each half can
-   see the shift (held otherwise, as COLMAP always holds it).
+6. When no image registers any more: final BAs to a tighter tolerance, then an earlier model of
+   the cluster that shares no image with this one, but whose points its images see or the other
+   way round, joins it as a whole, registered by one similarity from all the rays between the
+   two (on PnP's terms), and the model grows on; otherwise a new model from the remaining
+   images: several models are a result, not an error.  A model whose final BAs moved a guessed
+   focal length (no EXIF) more than 3 times away is grown again from the refined value (at most
+   twice): it was grown at a focal length it rejects.  Every later model of that camera starts
+   from the refined value too, and an earlier one that grew from the rejected value is taken
+   apart, its images free again: joined as a whole, its poses and points made at that focal
+   length would bend the model.  The final BAs pose the cameras with the points three images or
+   more see (a point two images see cannot expose a wrong match; it is re-estimated afterwards,
+   unless an image needs it).  They refine what the photos determine of each camera
+   (``intrinsics_refinement`` "auto", the default): its distortion only when its difference from
+   the nominal values is significant at 3 sigma and within a lens's range, no parameter above 1
+   (held otherwise: a nadir block trades an undetermined distortion for a bent block, and a
+   small model grown at a wrong focal length fits it with a distortion no lens has); its
+   principal point only when its shift from the nominal value is significant at 3 sigma, its
+   correlation with the other intrinsics below 0.9, and the two halves of its images, each
+   adjusted alone, agree on it where each half can see the shift (held otherwise, as COLMAP
+   always holds it).
 
 Design, the data and the solver: state lives in flat numpy arrays over the track observations (per row:
 image, keypoint, pixel, normalised coordinates, inlier flag), so each step is a vectorised

@@ -67,6 +67,7 @@ class ModelGrowth:
     calibration: list[str] = field(default_factory=list)
     absorbed: bool = False  # joined a later model as a whole (``sfm.mapper.joining``)
     joins: list[str] = field(default_factory=list)  # the earlier models that joined this one, in words
+    taken_apart: str = ""  # why a later model freed its images again, in words (``free_models_grown_far_from``)
 
 
 @dataclass
@@ -140,11 +141,16 @@ class Growth:
         self.models[index].absorbed = True
         self.models[-1].joins.append(how)
 
+    def take_apart(self, index: int, why: str) -> None:
+        """Model ``index`` (of :attr:`models`), closed before, was taken apart (``why``: in words,
+        for the recording): its images are free again, and it is no longer a model."""
+        self.models[index].taken_apart = why
+
     def finish(self, min_size: int) -> None:
         """Rank the kept models as :func:`reconstruct_incremental` sorts them (largest first,
         stable); attempts below ``min_size`` images stay at rank -1."""
         self.min_size = min_size
-        kept = [k for k, m in enumerate(self.models) if m.size >= min_size and not m.absorbed]
+        kept = [k for k, m in enumerate(self.models) if m.size >= min_size and not m.absorbed and not m.taken_apart]
         for rank, k in enumerate(sorted(kept, key=lambda k: -self.models[k].size)):
             self.models[k].rank = rank
 
@@ -157,7 +163,7 @@ class Growth:
         largest = min(kept, key=lambda m: m.rank) if kept else None
         reasons = dict(largest.left_out) if largest is not None else {}
         for m in self.models:
-            if m.rank < 0 and m.size and not m.absorbed:
+            if m.rank < 0 and m.size and not m.absorbed and not m.taken_apart:
                 for i in m.registered.tolist():
                     reasons[self.names[i]] = (f"registered only in a model of {m.size} images, fewer than the "
                                               f"{self.min_size} a kept model needs")

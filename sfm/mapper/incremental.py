@@ -13,7 +13,8 @@ refined one last time; a model finished earlier that shares no image with it, bu
 its images see or the other way round, then joins it as a whole (``sfm.mapper.joining``) and the
 model grows on; otherwise a new model is started from the remaining images: several models are
 a result, not an error.  A model whose last BAs moved a guessed focal length far
-(``FOCAL_RESTART_RATIO``) is first grown again from the refined value.
+(``FOCAL_RESTART_RATIO``) is first grown again from the refined value, as every later model
+of the camera is, and an earlier model grown from the rejected value is taken apart.
 
 State lives in flat numpy arrays over the observations of the tracks (``sfm.mapper.tracks``),
 so each step is vectorised; the bookkeeping is :class:`sfm.mapper.state.MapperState`.
@@ -91,6 +92,7 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
                      payload.label, state.num_registered,
                      ", ".join(f"{state.start_focal(c):.0f} -> {f:.0f} px" for c, f in moved.items()))
             state.restart_model(moved)
+            closed -= free_models_grown_far_from(state, moved, finished, models, growth)
             tried.clear()
             tried.update(tried_before)
             if growth is not None:
@@ -120,6 +122,32 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
     if growth is not None:
         growth.finish(min_size)
     return models
+
+
+def free_models_grown_far_from(state: MapperState, focals: dict[int, float], finished: list[FinishedModel],
+                               models: list[Reconstruction], growth: Growth | None) -> int:
+    """Take apart the ``finished`` models (and their ``models`` entries) grown from a focal
+    length more than ``FOCAL_RESTART_RATIO`` away from the value ``focals`` gives the camera: a
+    later model of the camera rejected the focal length they grew at, as the restart rule
+    rejects it for the current model, and they would join it as a whole with their poses and
+    points made at that focal length (a bent ring).  Their images are free again, for the current
+    model to register one by one, or for later models to start from ``focals``.  Returns the
+    number of images freed."""
+    freed = 0
+    for candidate in [m for m in finished if m.grew_far_from(focals, FOCAL_RESTART_RATIO)]:
+        against = ", ".join(f"{candidate.start_focals[c]:.0f} px against {f:.0f}"
+                            for c, f in focals.items() if c in candidate.start_focals)
+        why = (f"the finished model of {candidate.size} images grew at a focal length a later model rejects "
+               f"({against}): its images are free again")
+        log.info("%s: %s", state.payload.label, why)
+        finished.remove(candidate)
+        if candidate.kept is not None:
+            models[:] = [m for m in models if m is not candidate.kept]
+        if growth is not None and candidate.growth_index is not None:
+            growth.take_apart(candidate.growth_index, why)
+        state.free_images(candidate.images)
+        freed += candidate.size
+    return freed
 
 
 def grow(state: MapperState, adjuster: BundleAdjuster, growth: Growth | None, report) -> None:

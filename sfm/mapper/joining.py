@@ -29,7 +29,7 @@ cameras take its intrinsics where it holds more of their images, and the model g
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -62,16 +62,24 @@ class FinishedModel:
     params: list[np.ndarray]
     kept: object | None = None
     growth_index: int | None = None
+    start_focals: dict[int, float] = field(default_factory=dict)  # camera index -> focal length it grew from
 
     @classmethod
     def of(cls, state: MapperState, kept=None, growth_index: int | None = None) -> FinishedModel:
         images, tracks = np.flatnonzero(state.registered), np.flatnonzero(state.track_valid)
         return cls(images, state.R[images].copy(), state.t[images].copy(), tracks, state.track_xyz[tracks].copy(),
-                   [p.copy() for p in state.params], kept, growth_index)
+                   [p.copy() for p in state.params], kept, growth_index,
+                   {c: state.start_focal(c) for c in np.unique(state.cam_index[images]).tolist()})
 
     @property
     def size(self) -> int:
         return len(self.images)
+
+    def grew_far_from(self, focals: dict[int, float], ratio: float) -> bool:
+        """Whether this model grew from a focal length more than ``ratio`` away (either way) from
+        the value ``focals`` (camera index -> focal length) gives one of its cameras."""
+        return any(c in self.start_focals and abs(np.log(f / self.start_focals[c])) > np.log(ratio)
+                   for c, f in focals.items())
 
     def arrays(self, state: MapperState) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(registered, R, t, track_valid, track_xyz)`` over all of the state's images and

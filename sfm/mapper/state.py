@@ -246,18 +246,25 @@ class MapperState:
         self.obs_inlier[rows] = self.reprojection_errors(rows, self.track_xyz[self.obs_track[rows]]) < self.opts.max_reproj_error
 
     def close_model(self) -> None:
+        """The current model is finished: its images belong to it, and the next model starts
+        from the same focal lengths as this one."""
         self.used |= self.registered
-        self.start_focals = {}
         self._reset_model()
 
     def restart_model(self, focals: dict[int, float]) -> None:
-        """Discard the current model, its images free again, and start the next one with the
-        cameras of ``focals`` (camera index -> focal length) at those focal lengths."""
-        self.start_focals = dict(focals)
+        """Discard the current model, its images free again, and start it again, and every
+        later model of this state, with the cameras of ``focals`` (camera index -> focal length)
+        at those focal lengths: a guess one model of a camera rejected is rejected for all."""
+        self.start_focals.update(focals)
         self._reset_model()
 
+    def free_images(self, images: np.ndarray) -> None:
+        """Images of a finished model that was taken apart: later models may register them."""
+        self.used[images] = False
+
     def start_focal(self, c: int) -> float:
-        """The focal length camera ``c`` started the current model from."""
+        """The focal length camera ``c`` started the current model from: its prior, or the value
+        a restart gave it."""
         prior = self.priors[c]
         return self.start_focals.get(c, float(np.mean(focal_lengths(prior.model, prior.params))))
 

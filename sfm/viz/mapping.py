@@ -8,8 +8,10 @@ registered it), ``clusters/<C>/model<m>/points`` (the sample of points, in their
 ``clusters/<C>/model<m>/calibration`` (what its final bundle adjustments refined of each camera,
 and why), ``clusters/<C>/model<m>/joins`` (the earlier models that joined it as a whole, and
 on what evidence); a model attempt too small to keep is ``clusters/<C>/dropped<a>``, one that
-joined a later model ``clusters/<C>/joined<a>``.  ``clusters/<C>/unregistered`` says why each
-image in no model was left out; ``clusters/<C>/error`` why a cluster failed.
+joined a later model ``clusters/<C>/joined<a>``, one taken apart because a later model
+rejected the focal length it grew at ``clusters/<C>/taken_apart<a>`` (``/taken_apart`` says
+why).  ``clusters/<C>/unregistered`` says why each image in no model was left out;
+``clusters/<C>/error`` why a cluster failed.
 """
 
 from __future__ import annotations
@@ -20,9 +22,11 @@ from sfm.viz.models import frustum_depth, log_frustum, log_model, world_centres,
 from sfm.viz.recorder import Recorder, entity_part
 
 
-def model_prefix(label: str, rank: int, attempt: int, absorbed: bool = False) -> str:
+def model_prefix(label: str, rank: int, attempt: int, absorbed: bool = False, taken_apart: bool = False) -> str:
     if absorbed:
         return f"clusters/{label}/joined{attempt}"
+    if taken_apart:
+        return f"clusters/{label}/taken_apart{attempt}"
     return f"clusters/{label}/model{rank}" if rank >= 0 else f"clusters/{label}/dropped{attempt}"
 
 
@@ -38,7 +42,7 @@ def log_growth(recorder: Recorder, growth) -> int:
     for attempt, model in enumerate(growth.models):
         if not model.steps:
             continue
-        prefix = model_prefix(label, model.rank, attempt, model.absorbed)
+        prefix = model_prefix(label, model.rank, attempt, model.absorbed, bool(model.taken_apart))
         times = [step.num_registered for step in model.steps]
         poses: dict[int, list] = {}  # image -> [(time, R, t)]
         for step in model.steps:
@@ -71,6 +75,8 @@ def log_growth(recorder: Recorder, growth) -> int:
         if model.calibration:
             recorder.log(f"{prefix}/calibration", rr.TextDocument(calibration_text(model.calibration),
                                                                   media_type=rr.MediaType.MARKDOWN))
+        if model.taken_apart:
+            recorder.log(f"{prefix}/taken_apart", rr.TextDocument(model.taken_apart, media_type=rr.MediaType.MARKDOWN))
         if model.joins:
             recorder.log(f"{prefix}/joins", rr.TextDocument("\n".join(f"- {line}" for line in model.joins),
                                                             media_type=rr.MediaType.MARKDOWN))
