@@ -451,3 +451,40 @@ def test_a_restart_frees_the_finished_models_grown_at_the_focal_length_it_reject
             texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
     assert "640 px against 2000" in texts["/clusters/C0/taken_apart0/taken_apart"]
     assert not any(path.startswith("/clusters/C0/model1") for path in texts)
+
+
+def test_a_guessed_focal_length_is_rejected_far_off_or_nearer_with_a_camera_beyond_any_lens(tmp_path):
+    """``rejected_focal_lengths``: beyond ``FOCAL_RESTART_RATIO`` for the distance alone; beyond
+    the focal search's resolution only while the camera is beyond any lens (a principal point
+    outside the image, or a distortion estimate the test held as no lens's); nearer, never."""
+    from dataclasses import replace
+
+    from sfm.mapper.bundle_adjuster import BundleAdjuster
+    from sfm.mapper.distortion import check_distortion
+    from sfm.mapper.registration import FOCAL_SEARCH_STEP
+
+    _, payload = _narrow_ring_with_a_short_guess(tmp_path, 4.0)
+    state = MapperState(payload, MapperOptions())
+    adjuster = BundleAdjuster(state)
+    state.registered[:3] = True
+    prior = state.priors[0]
+    assert abs(FOCAL_SEARCH_STEP - 100 ** (1 / 29)) < 1e-12  # 30 candidates over 0.1-10 x the longer side
+
+    def rejected(focal, cy=None):
+        state.set_focal(0, focal)
+        if cy is not None:
+            state.set_camera_params({state.cam_keys[0]: np.r_[state.params[0][:2], cy, state.params[0][3:]]})
+        return incremental.rejected_focal_lengths(state, adjuster)
+
+    assert rejected(640.0 * 3.1) == ({0: 640.0 * 3.1}, "")  # far enough on its own
+    assert rejected(640.0 * 1.6, cy=prior.params[2]) == ({}, "")  # a lens: the principal point in the image
+    moved, why = rejected(640.0 * 1.6, cy=prior.height + 20.0)  # below the image
+    assert moved == {0: 640.0 * 1.6} and "beyond any lens" in why
+    assert rejected(640.0 * 1.1, cy=prior.height + 20.0) == ({}, "")  # within the search's resolution
+    rejected(640.0 * 1.6, cy=prior.params[2])
+    nominal = np.r_[1000.0, 1000.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    adjuster.calibration.distortion_tests[0] = check_distortion("SIMPLE_RADIAL", nominal, np.r_[nominal[:5], -1.3, 0, 0, 0], None)
+    assert adjuster.calibration.distortion_tests[0].beyond_lens
+    assert rejected(640.0 * 1.6)[0] == {0: 640.0 * 1.6}
+    adjuster.calibration.distortion_tests[0] = replace(adjuster.calibration.distortion_tests[0], beyond_lens=False)
+    assert rejected(640.0 * 1.6) == ({}, "")

@@ -39,13 +39,15 @@ Design, the loop (``sfm.mapper.incremental``):
    way round, joins it as a whole, registered by one similarity from all the rays between the
    two (on PnP's terms), and the model grows on; otherwise a new model from the remaining
    images: several models are a result, not an error.  A model whose final BAs moved a guessed
-   focal length (no EXIF) more than 3 times away is grown again from the refined value (at most
-   twice): it was grown at a focal length it rejects.  Every later model of that camera starts
-   from the refined value too, and an earlier one that grew from the rejected value is taken
-   apart, its images free again: joined as a whole, its poses and points made at that focal
-   length would bend the model.  The final BAs pose the cameras with the points three images or
-   more see (a point two images see cannot expose a wrong match; it is re-estimated afterwards,
-   unless an image needs it).  They refine what the photos determine of each camera
+   focal length (no EXIF) more than 3 times away, or more than the focal search's resolution
+   (17%) while they find the camera beyond any lens (COLMAP's bogus camera: a principal point
+   outside the image, a distortion parameter above 1), is grown again from the refined value (at
+   most twice): it was grown at a focal length it rejects.  Every later model of that camera
+   starts from the refined value too, and an earlier one that grew from the rejected value is
+   taken apart, its images free again: joined as a whole, its poses and points made at that
+   focal length would bend the model.  The final BAs pose the cameras with the points three
+   images or more see (a point two images see cannot expose a wrong match; it is re-estimated
+   afterwards, unless an image needs it).  They refine what the photos determine of each camera
    (``intrinsics_refinement`` "auto", the default): its distortion only when its difference from
    the nominal values is significant at 3 sigma and within a lens's range, no parameter above 1
    (held otherwise: a nadir block trades an undetermined distortion for a bent block, and a

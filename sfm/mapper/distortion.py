@@ -102,6 +102,7 @@ class DistortionTest:
     chi2: float
     threshold: float
     reason: str
+    beyond_lens: bool = False  # held because the estimate is beyond any lens (``MAX_EXTRA_PARAM``)
 
     def summary(self) -> str:
         shift = ", ".join(f"{v:+.3g}" for v in self.shift)
@@ -127,7 +128,7 @@ def check_distortion(model: str, nominal_ds2: np.ndarray, estimate_ds2: np.ndarr
     std = np.full(len(comps), np.nan) if cov is None else np.sqrt(np.maximum(np.diag(cov), 0.0))
     if not np.all(np.abs(estimate) <= MAX_EXTRA_PARAM):  # NaN fails too
         return DistortionTest(False, tuple(shift), tuple(std), float("nan"), threshold,
-                              f"beyond a lens: a parameter above {MAX_EXTRA_PARAM:g} in magnitude")
+                              f"beyond a lens: a parameter above {MAX_EXTRA_PARAM:g} in magnitude", beyond_lens=True)
     if cov is None:
         return DistortionTest(True, tuple(shift), tuple(std), float("nan"), threshold, "no covariance: refined as COLMAP does")
     singular = DistortionTest(True, tuple(shift), tuple(std), float("nan"), threshold,

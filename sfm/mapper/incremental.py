@@ -13,8 +13,9 @@ refined one last time; a model finished earlier that shares no image with it, bu
 its images see or the other way round, then joins it as a whole (``sfm.mapper.joining``) and the
 model grows on; otherwise a new model is started from the remaining images: several models are
 a result, not an error.  A model whose last BAs moved a guessed focal length far
-(``FOCAL_RESTART_RATIO``) is first grown again from the refined value, as every later model
-of the camera is, and an earlier model grown from the rejected value is taken apart.
+(``FOCAL_RESTART_RATIO``), or less far while they find the camera beyond any lens, is first
+grown again from the refined value, as every later model of the camera is, and an earlier model
+grown from the rejected value is taken apart.
 
 State lives in flat numpy arrays over the observations of the tracks (``sfm.mapper.tracks``),
 so each step is vectorised; the bookkeeping is :class:`sfm.mapper.state.MapperState`.
@@ -26,6 +27,7 @@ import logging
 
 import numpy as np
 
+from backend.camera_models import has_bogus_params
 from sfm.core import progress
 from sfm.core.model import Reconstruction
 from sfm.mapper.bundle_adjuster import FINAL_TOLERANCE, GROWING_TOLERANCE, BundleAdjuster
@@ -35,7 +37,7 @@ from sfm.mapper.joining import FinishedModel, estimate_similarity, join
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.output import to_reconstruction
 from sfm.mapper.payload import MapperInput
-from sfm.mapper.registration import register_next
+from sfm.mapper.registration import FOCAL_SEARCH_STEP, register_next
 from sfm.mapper.state import MapperState
 from sfm.mapper.structureless import register_structureless
 
@@ -54,7 +56,9 @@ EARLY_GLOBAL_BA_IMAGES = 10
 # correct that: a narrow-field ring grown from a guess several times too short can end at a
 # focal length traded against a strong radial distortion, its poses far off.  A lens about
 # twice as long as the guess is common (a short telephoto) and its models grow to the right
-# focal length; the factor lies above it, so that they are not grown again for nothing.
+# focal length; the factor lies above it, so that they are not grown again for nothing.  A
+# model whose final BAs also find the camera beyond any lens is grown again from a smaller move
+# (``rejected_focal_lengths``).
 FOCAL_RESTART_RATIO = 3.0
 # Regrowths of one model at most (each starts from the focal length the previous attempt refined).
 MAX_FOCAL_RESTARTS = 2
@@ -85,12 +89,12 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
         if growth is not None:
             growth.record(state, adjuster.last_rms, list(np.flatnonzero(state.registered)))
         grow_and_refine(state, adjuster, growth, report)
-        moved = state.guessed_focal_moves(FOCAL_RESTART_RATIO)
+        moved, why = rejected_focal_lengths(state, adjuster)
         if moved and restarts < MAX_FOCAL_RESTARTS:
             restarts += 1
-            log.info("%s: the model of %d images refined a guessed focal length %s: grown again from it",
+            log.info("%s: the model of %d images refined a guessed focal length %s%s: grown again from it",
                      payload.label, state.num_registered,
-                     ", ".join(f"{state.start_focal(c):.0f} -> {f:.0f} px" for c, f in moved.items()))
+                     ", ".join(f"{state.start_focal(c):.0f} -> {f:.0f} px" for c, f in moved.items()), why)
             state.restart_model(moved)
             closed -= free_models_grown_far_from(state, moved, finished, models, growth)
             tried.clear()
@@ -122,6 +126,27 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
     if growth is not None:
         growth.finish(min_size)
     return models
+
+
+def rejected_focal_lengths(state: MapperState, adjuster: BundleAdjuster) -> tuple[dict[int, float], str]:
+    """The cameras whose guessed focal length the finished model rejects (camera index -> its
+    refined focal length), and why in words when not for the distance alone: refined more than
+    ``FOCAL_RESTART_RATIO`` away from the value the model grew from
+    (``MapperState.guessed_focal_moves``), or more than ``FOCAL_SEARCH_STEP`` away while the final
+    BAs find the camera beyond any lens: COLMAP's bogus camera (a principal point outside the
+    image, a distortion parameter above 1: ``backend.camera_models.has_bogus_params``), or a
+    distortion estimate the test held for that (``sfm.mapper.distortion``).  A model grown at a
+    focal length several times too short makes up for it with intrinsics no lens has, and its
+    focal length can stop short of the truth, its poses bent.  Closer than the focal search's
+    resolution, a model grown again would start where this one did."""
+    moved = state.guessed_focal_moves(FOCAL_RESTART_RATIO)
+    beyond = {}
+    for c, focal in state.guessed_focal_moves(FOCAL_SEARCH_STEP).items():
+        prior, test = state.priors[c], adjuster.calibration.distortion_tests.get(c)
+        if c not in moved and (has_bogus_params(prior.model, state.params[c], prior.width, prior.height)
+                               or (test is not None and test.beyond_lens)):
+            beyond[c] = focal
+    return moved | beyond, " (its final BAs found the camera beyond any lens)" if beyond else ""
 
 
 def free_models_grown_far_from(state: MapperState, focals: dict[int, float], finished: list[FinishedModel],

@@ -36,6 +36,9 @@ from sfm.mapper.state import MapperState
 # would; the pose at the chosen focal length is then found from all points.
 FOCAL_SEARCH_RANGE = (0.1, 10.0)
 FOCAL_SEARCH_CANDIDATES = 30
+# The ratio between neighbouring candidates: the resolution at which the search tells focal
+# lengths apart.
+FOCAL_SEARCH_STEP = (FOCAL_SEARCH_RANGE[1] / FOCAL_SEARCH_RANGE[0]) ** (1.0 / (FOCAL_SEARCH_CANDIDATES - 1))
 FOCAL_SEARCH_ITERATIONS = 160
 FOCAL_SEARCH_POINTS = 300
 # Inliers the refinement of pose and camera uses at most (a random sample): a thousand points fix
