@@ -457,8 +457,6 @@ def test_a_guessed_focal_length_is_rejected_far_off_or_nearer_with_a_camera_beyo
     """``rejected_focal_lengths``: beyond ``FOCAL_RESTART_RATIO`` for the distance alone; beyond
     the focal search's resolution only while the camera is beyond any lens (a principal point
     outside the image, or a distortion estimate the test held as no lens's); nearer, never."""
-    from dataclasses import replace
-
     from sfm.mapper.bundle_adjuster import BundleAdjuster
     from sfm.mapper.distortion import check_distortion
     from sfm.mapper.registration import FOCAL_SEARCH_STEP
@@ -483,8 +481,9 @@ def test_a_guessed_focal_length_is_rejected_far_off_or_nearer_with_a_camera_beyo
     assert rejected(640.0 * 1.1, cy=prior.height + 20.0) == ({}, "")  # within the search's resolution
     rejected(640.0 * 1.6, cy=prior.params[2])
     nominal = np.r_[1000.0, 1000.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    adjuster.calibration.distortion_tests[0] = check_distortion("SIMPLE_RADIAL", nominal, np.r_[nominal[:5], -1.3, 0, 0, 0], None)
-    assert adjuster.calibration.distortion_tests[0].beyond_lens
+    assert check_distortion("SIMPLE_RADIAL", nominal, np.r_[nominal[:5], -1.3, 0, 0, 0], None).beyond_lens
+    assert not check_distortion("SIMPLE_RADIAL", nominal, np.r_[nominal[:5], -0.9, 0, 0, 0], None).beyond_lens
+    adjuster.calibration.beyond_lens.add(0)  # as a final BA of the model whose distortion test held -1.3
     assert rejected(640.0 * 1.6)[0] == {0: 640.0 * 1.6}
-    adjuster.calibration.distortion_tests[0] = replace(adjuster.calibration.distortion_tests[0], beyond_lens=False)
+    adjuster.calibration.forget()  # the next model's final BAs start without that evidence
     assert rejected(640.0 * 1.6) == ({}, "")

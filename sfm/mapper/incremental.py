@@ -135,16 +135,17 @@ def rejected_focal_lengths(state: MapperState, adjuster: BundleAdjuster) -> tupl
     (``MapperState.guessed_focal_moves``), or more than ``FOCAL_SEARCH_STEP`` away while the final
     BAs find the camera beyond any lens: COLMAP's bogus camera (a principal point outside the
     image, a distortion parameter above 1: ``backend.camera_models.has_bogus_params``), or a
-    distortion estimate the test held for that (``sfm.mapper.distortion``).  A model grown at a
+    distortion estimate the test held for that in any of them (``sfm.mapper.distortion``; held,
+    the next final BA may fit the wrong focal length within a lens's range).  A model grown at a
     focal length several times too short makes up for it with intrinsics no lens has, and its
     focal length can stop short of the truth, its poses bent.  Closer than the focal search's
     resolution, a model grown again would start where this one did."""
     moved = state.guessed_focal_moves(FOCAL_RESTART_RATIO)
     beyond = {}
     for c, focal in state.guessed_focal_moves(FOCAL_SEARCH_STEP).items():
-        prior, test = state.priors[c], adjuster.calibration.distortion_tests.get(c)
+        prior = state.priors[c]
         if c not in moved and (has_bogus_params(prior.model, state.params[c], prior.width, prior.height)
-                               or (test is not None and test.beyond_lens)):
+                               or c in adjuster.calibration.beyond_lens):
             beyond[c] = focal
     return moved | beyond, " (its final BAs found the camera beyond any lens)" if beyond else ""
 

@@ -66,6 +66,8 @@ class SelfCalibration:
         # camera index -> the principal point and distortion tests of the last final BA that ran them
         self.principal_point_tests: dict[int, PrincipalPointTest] = {}
         self.distortion_tests: dict[int, DistortionTest] = {}
+        # cameras whose distortion a final BA of this model estimated beyond any lens
+        self.beyond_lens: set[int] = set()
         # cameras whose split-sample step held the principal point in this model: not tested again
         self.held_by_halves: set[int] = set()
         # cameras whose principal point is to be tested again although it passed before (retest)
@@ -138,6 +140,8 @@ class SelfCalibration:
             distortion = check_distortion(prior.model, nominal, current + (step if step is not None else 0.0), cov)
             if distortion_components(prior.model):
                 self.distortion_tests[c] = distortion
+                if distortion.beyond_lens:
+                    self.beyond_lens.add(c)
                 log.info("%s: camera %d (%d images): %s", s.payload.label, c, num_images, distortion.summary())
             if not distortion.accepted and distortion_components(prior.model):
                 hold(c, list(model_spec(prior.model).extra_idx))
@@ -211,6 +215,7 @@ class SelfCalibration:
         distortion again."""
         self.principal_point_tests.clear()
         self.distortion_tests.clear()
+        self.beyond_lens.clear()
         self.held_by_halves.clear()
         self._retest.clear()
 
