@@ -66,7 +66,7 @@ class SelfCalibration:
         # camera index -> the principal point and distortion tests of the last final BA that ran them
         self.principal_point_tests: dict[int, PrincipalPointTest] = {}
         self.distortion_tests: dict[int, DistortionTest] = {}
-        # cameras whose distortion a final BA of this model estimated beyond any lens
+        # cameras whose distortion a final BA of the model's last refinement estimated beyond any lens
         self.beyond_lens: set[int] = set()
         # cameras whose split-sample step held the principal point in this model: not tested again
         self.held_by_halves: set[int] = set()
