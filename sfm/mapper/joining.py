@@ -35,7 +35,7 @@ import numpy as np
 
 from backend.camera_models import focal_lengths, unproject
 from sfm.mapper.initialization import pose_from_essential
-from sfm.mapper.state import MapperState
+from sfm.mapper.state import MapperState, focal_ratio_beyond
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +78,7 @@ class FinishedModel:
     def grew_far_from(self, focals: dict[int, float], ratio: float) -> bool:
         """Whether this model grew from a focal length more than ``ratio`` away (either way) from
         the value ``focals`` (camera index -> focal length) gives one of its cameras."""
-        return any(c in self.start_focals and abs(np.log(f / self.start_focals[c])) > np.log(ratio)
-                   for c, f in focals.items())
+        return any(c in self.start_focals and focal_ratio_beyond(f, self.start_focals[c], ratio) for c, f in focals.items())
 
     def arrays(self, state: MapperState) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(registered, R, t, track_valid, track_xyz)`` over all of the state's images and

@@ -35,6 +35,11 @@ MIN_IMAGES_FOR_CAMERA_FILTER = 20
 MIN_POSE_POINTS = 3
 
 
+def focal_ratio_beyond(focal: float, other: float, ratio: float) -> bool:
+    """Whether two focal lengths are more than ``ratio`` apart, either way."""
+    return bool(abs(np.log(focal / other)) > np.log(ratio))
+
+
 def track_rows(starts: np.ndarray, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows of the given tracks (concatenated) and the position of each row's track in ``tracks``."""
     lengths = starts[tracks + 1] - starts[tracks]
@@ -277,7 +282,7 @@ class MapperState:
         for c, prior in enumerate(self.priors):
             if prior.fixed or prior.prior_focal_length or np.sum(self.registered & (self.cam_index == c)) < 3:
                 continue
-            if abs(np.log(self.camera_focal(c) / self.start_focal(c))) > np.log(ratio):
+            if focal_ratio_beyond(self.camera_focal(c), self.start_focal(c), ratio):
                 moved[c] = self.camera_focal(c)
         return moved
 
