@@ -69,8 +69,8 @@ def _rotation_error_deg(A: np.ndarray, B: np.ndarray) -> float:
 def test_the_similarity_between_two_arcs_of_an_orbit_is_found_and_joins_them(tmp_path):
     state, finished, R, t = _two_models(tmp_path, range(8), range(8, 16))
     assert not state.registered[:8].any() and state.registered[8:].all()
-    sim = estimate_similarity(state, finished)
-    assert sim is not None
+    sim, why = estimate_similarity(state, finished)
+    assert sim is not None and why == ""
     assert sim.inliers >= state.opts.abs_pose_min_num_inliers
     assert abs(sim.scale / SCALE - 1) < 0.01
     assert _rotation_error_deg(sim.R, ROTATION) < 0.3  # one essential matrix's rotation; the BAs refine it
@@ -90,7 +90,7 @@ def test_the_similarity_between_two_arcs_of_an_orbit_is_found_and_joins_them(tmp
 
 def test_a_larger_finished_model_keeps_its_frame_and_points(tmp_path):
     state, finished, R, _ = _two_models(tmp_path, range(11), range(11, 16))
-    sim = estimate_similarity(state, finished)
+    sim, _ = estimate_similarity(state, finished)
     assert sim is not None
     join(state, finished, sim)
     assert state.registered.all()
@@ -102,20 +102,69 @@ def test_a_larger_finished_model_keeps_its_frame_and_points(tmp_path):
     np.testing.assert_array_equal(state.track_xyz[finished.tracks], finished.xyz)
 
 
-@pytest.mark.parametrize("what", ["no cross pair", "rays of one image"])
-def test_no_similarity_without_a_rotation_or_with_the_scale_undetermined(tmp_path, what):
-    """Without a pair across the two models whose essential matrix gives the rotation, nothing;
-    with every ray in one image (a current model of one image that sees the finished model's
-    points), that image's pose in the other frame is fixed but not the scale: nothing either."""
-    current = range(8, 16) if what == "no cross pair" else [8]
+def _cross_pairs(state: MapperState, finished: FinishedModel) -> list[tuple[int, int]]:
+    inside = set(finished.images.tolist())
+    return [k for k in state.pair_matches if (k[0] in inside) != (k[1] in inside)]
+
+
+@pytest.mark.parametrize("what", ["no cross pair", "small cross pairs", "no relative pose", "too few rays",
+                                  "rays of one image", "rays off"])
+def test_no_similarity_says_which_step_fell_short(tmp_path, what):
+    """Without a pair across the two models whose essential matrix gives the rotation, nothing,
+    and the reason names the step: no pair across, pairs across all below PnP's inlier count,
+    no essential matrix from them; rays between the models fewer than PnP's inlier count;
+    every ray in one image (a current model of one image that sees the finished model's points:
+    that image's pose in the other frame is fixed but not the scale); rays that no similarity
+    fits (the finished model's points moved)."""
+    current = [8] if what == "rays of one image" else range(8, 16)
     state, finished, _, _ = _two_models(tmp_path, range(8), current)
+    opts = state.opts
+    cross = _cross_pairs(state, finished)
+    assert len(cross) >= 2
     if what == "no cross pair":
-        state.pair_matches = {k: v for k, v in state.pair_matches.items()
-                              if np.isin(k[0], finished.images) == np.isin(k[1], finished.images)}
-    else:
+        for k in cross:
+            del state.pair_matches[k]
+    elif what == "small cross pairs":
+        for k, keep in zip(cross, range(len(cross))):
+            m, geometry = state.pair_matches[k]
+            state.pair_matches[k] = (m[:opts.abs_pose_min_num_inliers - 1 - keep % 3], geometry)
+    elif what == "no relative pose":
+        rng = np.random.default_rng(0)
+        for k in cross:  # each keypoint matched to a random one: no essential matrix fits them
+            m, geometry = state.pair_matches[k]
+            state.pair_matches[k] = (np.column_stack([m[:, 0], rng.permutation(m[:, 1])]), geometry)
+    elif what == "too few rays":
+        state.registered[9:] = False  # a current model of one image (8) that sees too few of them ...
+        state.track_valid[:] = False
+        seen = np.flatnonzero(np.isin(state.obs_track, finished.tracks) & (state.obs_image == 8))
+        keep = np.isin(finished.tracks, state.obs_track[seen[:opts.abs_pose_min_num_inliers - 5]])
+        finished.tracks, finished.xyz = finished.tracks[keep], finished.xyz[keep]
+    elif what == "rays of one image":
         assert not state.track_valid.any()
-        assert np.isin(state.obs_track[state.obs_image == 8], finished.tracks).sum() >= state.opts.abs_pose_min_num_inliers
-    assert estimate_similarity(state, finished) is None
+        assert np.isin(state.obs_track[state.obs_image == 8], finished.tracks).sum() >= opts.abs_pose_min_num_inliers
+    else:  # the finished model's points and camera positions scattered: its rays fit nothing
+        rng = np.random.default_rng(1)
+        finished.xyz = finished.xyz + rng.normal(0.0, np.ptp(finished.xyz, axis=0), finished.xyz.shape)
+        finished.t = finished.t + rng.normal(0.0, np.ptp(finished.t, axis=0), finished.t.shape)
+    sim, why = estimate_similarity(state, finished)
+    assert sim is None
+    expected = {
+        "no cross pair": "no image pair across them has 30+ verified matches",
+        "small cross pairs": "no image pair across them has 30+ verified matches (the most: 29)",
+        "no relative pose": "no pair across them gives a relative pose with 30+ inliers (5 tried)",
+        "too few rays": "their images see 25 of each other's points, fewer than the 30 a registration needs",
+    }
+    if what in expected:
+        assert why == expected[what]
+    elif what == "rays of one image":
+        rays = int(np.isin(state.obs_track[state.obs_image == 8], finished.tracks).sum())
+        assert why == (f"the {rays} rays between them are all in one image, which they place in the other frame "
+                       "without the scale between the frames")
+    else:
+        assert why.startswith("at most ") and why.endswith("; joining needs 30, 25% of the rays, in two images or more")
+        fitted, rays = (int(x) for x in why.removeprefix("at most ").split(" rays")[0].split(" of the "))
+        assert rays > 10 * opts.abs_pose_min_num_inliers  # plenty of rays, ...
+        assert fitted < max(opts.abs_pose_min_num_inliers, opts.abs_pose_min_inlier_ratio * rays)  # ... too few fit
 
 
 def test_the_mapper_joins_a_model_to_the_one_it_could_not_grow_into(tmp_path, monkeypatch, caplog):
@@ -166,5 +215,18 @@ def test_the_mapper_joins_a_model_to_the_one_it_could_not_grow_into(tmp_path, mo
     result = evaluate(models[0], read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
     assert result.auc[1.0] > 0.9, result.auc
 
-    monkeypatch.setattr(incremental, "estimate_similarity", lambda state, finished, seed=0: None)
-    assert sorted(len(m.images) for m in incremental.reconstruct_incremental(payload, MapperOptions())) == [8, 8]
+    monkeypatch.setattr(incremental, "estimate_similarity", lambda state, finished, seed=0: (None, "a reason"))
+    growth = Growth(payload.label, list(payload.names), max_points=100)
+    models = incremental.reconstruct_incremental(payload, MapperOptions(), growth)
+    assert sorted(len(m.images) for m in models) == [8, 8]
+    # the report and the recording say why the two models stayed apart
+    assert growth.unjoined() == ["model 1 (8 images) did not join model 0 as a whole: a reason"]
+    with Recorder(tmp_path / "apart.rrd", tmp_path) as recorder:
+        log_growth(recorder, growth)
+    texts = {}
+    for chunk in RrdReader(str(tmp_path / "apart.rrd")).stream():
+        batch = chunk.to_record_batch()
+        if "TextDocument:text" in batch.schema.names:
+            texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
+    [unjoined] = [text for entity, text in texts.items() if entity.endswith("/unjoined")]
+    assert "- the finished model of 8 images: a reason" in unjoined

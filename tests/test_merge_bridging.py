@@ -101,7 +101,7 @@ def test_a_part_that_joins_no_single_part_is_tried_again_against_their_union(tmp
     def short_arc_only_to_both(state, finished, seed=0):
         """The short arc seeing too few points of either arc alone to join it."""
         if set(finished.images.tolist()) == short and not state.registered[first_two].all():
-            return None
+            return None, "too few rays"
         return real(state, finished, seed)
 
     monkeypatch.setattr(bridging, "estimate_similarity", short_arc_only_to_both)
@@ -151,7 +151,7 @@ def test_the_merge_joins_local_models_that_share_no_image(tmp_path, monkeypatch,
         folder.mkdir(parents=True)
         write_model(_half(payload, poses, half, moved), folder)
     if not bridge:
-        monkeypatch.setattr("sfm.stages.merge.find_bridges", lambda *args, **kwargs: [])
+        monkeypatch.setattr(bridging, "estimate_similarity", lambda state, finished, seed=0: (None, "too few rays"))
     with Recorder(tmp_path / "recording.rrd", tmp_path) as recorder:
         result = run_merge(tmp_path, MapperOptions(), MergeOptions(), recorder)
     plan = json.loads((tmp_path / "merge.json").read_text())
@@ -173,4 +173,8 @@ def test_the_merge_joins_local_models_that_share_no_image(tmp_path, monkeypatch,
     else:
         assert result.num_models == 2 and plan["edges"] == []
         [part] = plan["unjoined"]
-        assert part["reason"].startswith("shares no registered image with any other local model; nor do its photos")
+        why = ("shares no registered image with any other local model; nor did the rays between its photos and the "
+               "first part's points join it as one rigid body: too few rays")
+        assert part["reason"] == why
+        assert f"local models {part['models'][0]} join no other: {why}" in json.loads(
+            (tmp_path / "report.json").read_text())["warnings"]

@@ -53,3 +53,22 @@ def test_common_images_without_a_similarity_and_with_none_at_all():
     assert reasons == {("C1/0",): "C1/0 and C0/0 share 3 registered images but no similarity fits them "
                                   "(RANSAC found no consensus)",
                        ("C2/0",): "shares no registered image with any other local model"}
+
+
+def test_a_part_the_merge_could_not_bridge_says_why_the_rays_did_not_join_it():
+    """With the bridging's failures (by the local models of each side, either side first), each
+    part's reason ends with why the rays between it and the first part did not join it; a part
+    no failure names says only that they did not."""
+    options = MergeOptions()
+    models = [_model("C0/0", "abcd"), _model("C1/0", "cdef"), _model("C2/0", "xyz"), _model("C3/0", "uvw")]
+    edges = {(0, 1): _edge(0.01, True)}
+    plans = plan_components(models, edges)
+    assert sorted(plans[0].clusters) == [0, 1]
+    failures = {(frozenset({0, 1}), frozenset({2})): "too few rays", (frozenset({3}), frozenset({2})): "not this one"}
+    reasons = {tuple(p["models"]): p["reason"] for p in unjoined_parts(models, edges, plans, options, failures)}
+    rays = "; nor did the rays between its photos and the first part's points join it as one rigid body"
+    assert reasons == {("C2/0",): f"shares no registered image with any other local model{rays}: too few rays",
+                       ("C3/0",): f"shares no registered image with any other local model{rays}"}
+    failures = {(frozenset({3}), frozenset({0, 1})): "no pair"}  # the part received the first's rays
+    reasons = {tuple(p["models"]): p["reason"] for p in unjoined_parts(models, edges, plans, options, failures)}
+    assert reasons[("C3/0",)].endswith(f"{rays}: no pair")

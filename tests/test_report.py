@@ -209,3 +209,19 @@ def test_several_models_say_why_the_others_images_are_not_in_the_largest():
         "im0.jpg (reason 0), im1.jpg (reason 1), im2.jpg (reason 2) and 2 more")
     assert several_models_warning([4, 4], [{"zz.jpg"}], {}) == (
         "2 models: the images did not form one connected reconstruction (sizes 4, 4)")
+    unjoined = ["model 1 (3 images) did not join model 0 as a whole: why"]
+    assert several_models_warning([20, 3], [{"im0.jpg"}], left_out, unjoined) == (
+        "2 models: the images did not form one connected reconstruction (sizes 20, 3); not in the largest: "
+        "im0.jpg (reason 0); model 1 (3 images) did not join model 0 as a whole: why")
+
+
+def test_why_a_kept_model_did_not_join_the_largest():
+    """The reason the later of two kept models found when it tried to join the earlier, whichever
+    of them is the largest; none for a model that did not try (nothing recorded)."""
+    first = ModelGrowth(rank=1, size=4, registered=np.arange(4))
+    largest = ModelGrowth(rank=0, size=9, registered=np.arange(4, 13), unjoined={0: "too few rays"})
+    later = ModelGrowth(rank=2, size=3, registered=np.arange(13, 16), unjoined={0: "other", 1: "no pair"})
+    silent = ModelGrowth(rank=3, size=2, registered=np.arange(16, 18))
+    growth = Growth("C0", [f"i{k}" for k in range(18)], 0, models=[first, largest, later, silent], min_size=2)
+    assert growth.unjoined() == ["model 1 (4 images) did not join model 0 as a whole: too few rays",
+                                 "model 2 (3 images) did not join model 0 as a whole: no pair"]

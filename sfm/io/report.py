@@ -45,7 +45,8 @@ SCHEMA: dict[str, tuple[tuple[type, ...], str]] = {
     "median_inliers": ((int, float), "median inlier matches of the verified pairs"),
     "num_clusters": ((int,), "clusters of the image graph (1: no clustering)"),
     "clusters": ((list,), "per cluster: cluster, images, worker, models (path, registered, points, ...), "
-                          "error, reused, left_out (image -> why its largest model left it out)"),
+                          "error, reused, left_out (image -> why its largest model left it out), unjoined "
+                          "(why each other model did not join the largest as a whole)"),
     "failed_clusters": ((list,), "labels of the clusters whose local SfM failed"),
     "num_local_models": ((int,), "models made by the clusters' local SfM"),
     "merged": ((bool,), "whether local models were merged (false with one cluster)"),

@@ -14,8 +14,9 @@ every global bundle adjustment moves) only while the model has at most
 after the final refinement: O(n log n) poses for a model of n images, not O(n^2).
 With ``max_points`` 0 (no recording) it keeps no steps at all.  Per model it also keeps, for
 each image the model left out, why, and what its final bundle adjustments refined of each
-camera: :meth:`Growth.left_out` says why each image is not in the cluster's largest model, for
-the run's report as for the recording.
+camera: :meth:`Growth.left_out` says why each image is not in the cluster's largest model, and
+:meth:`Growth.unjoined` why each other kept model did not join it as a whole, for the run's
+report as for the recording.
 """
 
 from __future__ import annotations
@@ -67,6 +68,8 @@ class ModelGrowth:
     calibration: list[str] = field(default_factory=list)
     absorbed: bool = False  # joined a later model as a whole (``sfm.mapper.joining``)
     joins: list[str] = field(default_factory=list)  # the earlier models that joined this one, in words
+    # the earlier models that did not join this one (their index in Growth.models) -> why, in words
+    unjoined: dict[int, str] = field(default_factory=dict)
     taken_apart: str = ""  # why a later model freed its images again, in words (``free_models_grown_far_from``)
 
 
@@ -141,6 +144,12 @@ class Growth:
         self.models[index].absorbed = True
         self.models[-1].joins.append(how)
 
+    def not_joined(self, why: dict[int, str]) -> None:
+        """The current model's last try to join the earlier models as a whole failed: ``why``
+        each did not (index in :attr:`models` -> in words, ``sfm.mapper.joining``)."""
+        if self.models:
+            self.models[-1].unjoined = dict(why)
+
     def take_apart(self, index: int, why: str) -> None:
         """Model ``index`` (of :attr:`models`), closed before, was taken apart (``why``: in words,
         for the recording): its images are free again, and it is no longer a model."""
@@ -170,6 +179,19 @@ class Growth:
         held = set() if largest is None else {self.names[i] for i in largest.registered.tolist()}
         return {name: reasons.get(name, "no initial pair could be reconstructed")
                 for name in self.names if name not in held}
+
+    def unjoined(self) -> list[str]:
+        """Why each kept model other than the largest did not join it as a whole, a line per
+        model in rank order: what the later of the two found when it tried
+        (``sfm.mapper.joining.estimate_similarity``)."""
+        kept = sorted((k for k, m in enumerate(self.models) if m.rank >= 0), key=lambda k: self.models[k].rank)
+        lines = []
+        for k in kept[1:]:
+            model = self.models[k]
+            why = self.models[kept[0]].unjoined.get(k) or model.unjoined.get(kept[0])
+            if why:
+                lines.append(f"model {model.rank} ({model.size} images) did not join model 0 as a whole: {why}")
+        return lines
 
     def _cameras(self, state: MapperState) -> None:
         n = len(self.names)

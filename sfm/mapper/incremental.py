@@ -205,11 +205,15 @@ def join_a_finished_model(state: MapperState, adjuster: BundleAdjuster, finished
                           growth: Growth | None) -> FinishedModel | None:
     """Join the largest of the ``finished`` models that can be registered as one body in the
     current model (``sfm.mapper.joining``), then a global BA and re-triangulation; the model
-    joined (removed from ``finished``), or None when none can be."""
+    joined (removed from ``finished``), or None when none can be, and then ``growth`` notes why
+    each could not (``Growth.not_joined``)."""
+    why_not: dict[int, str] = {}  # growth index of a finished model -> why it did not join
     for k in sorted(range(len(finished)), key=lambda k: -finished[k].size):
         candidate = finished[k]
-        sim = estimate_similarity(state, candidate, state.opts.seed)
+        sim, why = estimate_similarity(state, candidate, state.opts.seed)
         if sim is None:
+            if candidate.growth_index is not None:
+                why_not[candidate.growth_index] = why
             continue
         before = state.num_registered
         images = join(state, candidate, sim)
@@ -226,6 +230,8 @@ def join_a_finished_model(state: MapperState, adjuster: BundleAdjuster, finished
                 growth.absorb(candidate.growth_index, how)
             growth.record(state, adjuster.last_rms, images.tolist())
         return candidate
+    if growth is not None:
+        growth.not_joined(why_not)
     return None
 
 

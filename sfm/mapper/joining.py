@@ -144,35 +144,48 @@ def _skew(v: np.ndarray) -> np.ndarray:
                      np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
 
 
-def estimate_similarity(state: MapperState, finished: FinishedModel, seed: int = 0) -> Similarity | None:
-    """The similarity from ``finished``'s frame to the current model's (module docstring), or
-    None when no rotation candidate gives one the acceptance terms allow."""
+def estimate_similarity(state: MapperState, finished: FinishedModel, seed: int = 0) -> tuple[Similarity | None, str]:
+    """The similarity from ``finished``'s frame to the current model's (module docstring) and
+    ``""``; or None and why not, in words, for the report and the recording: the step that fell
+    short (no pair across the two models with enough matches, no relative pose from those
+    pairs, too few rays between the models, too few of them fitting one similarity)."""
     opts = state.opts
-    rotations = _rotation_candidates(state, finished, seed)
+    rotations, why = _rotation_candidates(state, finished, seed)
     if not rotations:
-        return None  # before the finished model's tracks are expanded
+        return None, why  # before the finished model's tracks are expanded
     model = _Arrays(*finished.arrays(state), finished.params)
     cur_rows, cur_x = _rays(state, state.registered, state.params, model.track_valid)  # finished's points, current rays
     fin_rows, fin_x = _rays(state, model.registered, model.params, state.track_valid)  # current points, finished rays
-    if len(cur_rows) + len(fin_rows) < opts.abs_pose_min_num_inliers:
-        return None
+    rays = len(cur_rows) + len(fin_rows)
+    if rays < opts.abs_pose_min_num_inliers:
+        return None, (f"their images see {rays} of each other's points, fewer than the "
+                      f"{opts.abs_pose_min_num_inliers} a registration needs")
+    if len(np.unique(np.concatenate([state.obs_image[cur_rows], state.obs_image[fin_rows]]))) < 2:
+        return None, (f"the {rays} rays between them are all in one image, which they place in the other "
+                      "frame without the scale between the frames")
     best: Similarity | None = None
+    most = 0  # the most rays one similarity fitted, accepted or not
     for R in rotations:
-        found = _scale_and_translation(state, model, R, (cur_rows, cur_x), (fin_rows, fin_x), seed)
+        found, fitted = _scale_and_translation(state, model, R, (cur_rows, cur_x), (fin_rows, fin_x), seed)
+        most = max(most, fitted)
         if found is not None and (best is None or found.inliers > best.inliers):
             best = found
-    return best
+    if best is None:
+        return None, (f"at most {most} of the {rays} rays between them fit one similarity within "
+                      f"{opts.abs_pose_max_error:g} px; joining needs {opts.abs_pose_min_num_inliers}, "
+                      f"{opts.abs_pose_min_inlier_ratio:.0%} of the rays, in two images or more")
+    return best, ""
 
 
-def _rotation_candidates(state: MapperState, finished: FinishedModel, seed: int) -> list[np.ndarray]:
+def _rotation_candidates(state: MapperState, finished: FinishedModel, seed: int) -> tuple[list[np.ndarray], str]:
     """``R`` (finished frame to current frame) from the essential matrices of the pairs across
     the two models with the most verified matches, each with at least
-    ``abs_pose_min_num_inliers`` of them and of the essential matrix's inliers.  The pairs are
-    found in one vectorised pass: a cluster that closes many small models asks this of each at
-    every model's end."""
+    ``abs_pose_min_num_inliers`` of them and of the essential matrix's inliers; with none, why
+    not in words.  The pairs are found in one vectorised pass: a cluster that closes many small
+    models asks this of each at every model's end."""
     opts = state.opts
     if not state.pair_matches:
-        return []
+        return [], "no verified matches between their images are held"
     keys = list(state.pair_matches)
     pairs = np.array(keys, dtype=np.int64)
     sizes = np.fromiter((len(m) for m, _ in state.pair_matches.values()), np.int64, len(keys))
@@ -180,9 +193,14 @@ def _rotation_candidates(state: MapperState, finished: FinishedModel, seed: int)
     position[finished.images] = np.arange(finished.size)
     a, b = pairs[:, 0], pairs[:, 1]
     forward = (position[a] >= 0) & state.registered[b]  # (finished, current)
-    across = (forward | ((position[b] >= 0) & state.registered[a])) & (sizes >= opts.abs_pose_min_num_inliers)
+    linked = forward | ((position[b] >= 0) & state.registered[a])
+    across = linked & (sizes >= opts.abs_pose_min_num_inliers)
+    if not across.any():
+        most = f" (the most: {int(sizes[linked].max())})" if linked.any() else ""
+        return [], f"no image pair across them has {opts.abs_pose_min_num_inliers}+ verified matches{most}"
     candidates = []
-    for p in sorted(np.flatnonzero(across).tolist(), key=lambda p: (-sizes[p], keys[p]))[:MAX_ROTATION_PAIRS]:
+    tried = sorted(np.flatnonzero(across).tolist(), key=lambda p: (-sizes[p], keys[p]))[:MAX_ROTATION_PAIRS]
+    for p in tried:
         m = state.pair_matches[keys[p]][0]
         k, i, m = (a[p], b[p], m) if forward[p] else (b[p], a[p], m[:, ::-1])
         ck, ci = state.cam_index[k], state.cam_index[i]
@@ -193,12 +211,16 @@ def _rotation_candidates(state: MapperState, finished: FinishedModel, seed: int)
         if rel is None or int(rel[2].sum()) < opts.abs_pose_min_num_inliers:
             continue
         candidates.append(state.R[i].T @ rel[0] @ finished.R[position[k]])  # rel[0]: cam_i from cam_k
-    return candidates
+    if not candidates:
+        return [], (f"no pair across them gives a relative pose with {opts.abs_pose_min_num_inliers}+ inliers "
+                    f"({len(tried)} tried)")
+    return candidates, ""
 
 
 def _scale_and_translation(state: MapperState, finished: _Arrays, R: np.ndarray, current_rays, finished_rays,
-                           seed: int) -> Similarity | None:
-    """RANSAC over pairs of rays for ``(scale, t)`` given ``R``, refitted on the inliers."""
+                           seed: int) -> tuple[Similarity | None, int]:
+    """RANSAC over pairs of rays for ``(scale, t)`` given ``R``, refitted on the inliers: the
+    similarity where the acceptance terms allow it, and how many rays it fitted (0: none)."""
     opts = state.opts
     (cur_rows, cur_x), (fin_rows, fin_x) = current_rays, finished_rays
     # current image i sees finished point X: [x]x R_i (s R X + t) = -[x]x t_i
@@ -256,17 +278,17 @@ def _scale_and_translation(state: MapperState, finished: _Arrays, R: np.ndarray,
         if inl.sum() > best_count:
             best_inl, best_count = inl, int(inl.sum())
     if best_inl is None:
-        return None
+        return None, 0
     for _ in range(2):  # refit on the inliers, count again
         scale, t = solve(np.flatnonzero(best_inl))
         if not scale > 0:
-            return None
+            return None, best_count
         best_inl = errors(scale, t) < opts.abs_pose_max_error
     count = int(best_inl.sum())
     if (count < opts.abs_pose_min_num_inliers or count < opts.abs_pose_min_inlier_ratio * m
             or len(np.unique(image_of_ray[best_inl])) < 2):
-        return None
-    return Similarity(scale, R, t, count, m)
+        return None, count
+    return Similarity(scale, R, t, count, m), count
 
 
 def join(state: MapperState, finished: FinishedModel, sim: Similarity) -> np.ndarray:

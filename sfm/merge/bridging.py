@@ -73,7 +73,8 @@ def part_models(state: MapperState, parts: list[tuple[dict, dict, tuple]]) -> li
 
 
 def find_bridges(payload: MapperInput, opts: MapperOptions, parts: list[tuple[dict, dict, tuple]],
-                 seed: int = 0, finished: list[bool] | None = None) -> list[Bridge]:
+                 seed: int = 0, finished: list[bool] | None = None,
+                 why_not: dict[tuple[frozenset, frozenset], str] | None = None) -> list[Bridge]:
     """The bridges that join ``parts`` (``(poses, camera parameters, points)`` of each merge
     plan, in the plans' order) on PnP's terms (module docstring), found as the mapper joins its
     models: the larger of two parts receives the other, their union (in the receiver's frame,
@@ -83,7 +84,8 @@ def find_bridges(payload: MapperInput, opts: MapperOptions, parts: list[tuple[di
     union keeps its receiver's frame).  ``payload``: the images of all the parts and their
     verified matches.  ``finished``: parts that are models of an earlier run (``graphsfm
     extend``): two unions of only such parts are not tried together, as that run kept them
-    apart."""
+    apart.  ``why_not``: receives why each pair of unions tried did not join (their parts, the
+    receiver's first -> in words, ``sfm.mapper.joining.estimate_similarity``)."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # the parts are final: nothing registers a dropped image again
     unions = dict(enumerate(part_models(state, parts)))  # frame's part -> the union in its frame
@@ -105,11 +107,12 @@ def find_bridges(payload: MapperInput, opts: MapperOptions, parts: list[tuple[di
                     registered, R, t, track_valid, track_xyz = into.arrays(state)
                     state.load_model(registered, R, t, track_xyz, track_valid, into.params)
                     loaded = True
-                found = estimate_similarity(state, unions[b], seed)
+                found, why = estimate_similarity(state, unions[b], seed)
                 if found is None:
-                    log.info("merge: parts %s and %s: no similarity from the rays between them",
-                             sorted(members[a]), sorted(members[b]))
+                    log.info("merge: parts %s and %s do not join: %s", sorted(members[a]), sorted(members[b]), why)
                     failed.add(key)
+                    if why_not is not None:
+                        why_not[key] = why
                     continue
                 log.info("merge: parts %s join parts %s from %d of %d rays", sorted(members[b]), sorted(members[a]),
                          found.inliers, found.rays)

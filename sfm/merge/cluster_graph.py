@@ -90,13 +90,14 @@ def plan_components(models: list[LocalModel], edges: dict) -> list[MergePlan]:
 
 
 def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions,
-                   bridged: bool = False) -> list[dict]:
+                   bridge_failures: dict[tuple[frozenset, frozenset], str] | None = None) -> list[dict]:
     """Why each merge component other than the first (Alg. 2 merges only along cluster-graph
     edges) joins no other: the pair of local models, one inside and one outside, sharing the
     most registered images, and what stopped their edge (no common image, fewer than
     ``min_common_cameras``, no similarity found, or its MSD above ``max_msd``); with
-    ``bridged``, also that no bridge from the rays between the parts joined it
-    (``sfm.merge.bridging``)."""
+    ``bridge_failures`` (the merge tried to bridge the parts, ``sfm.merge.bridging``: why each
+    pair of parts tried did not join, by the node ids of each side), also why no bridge from
+    the rays between it and the first component joined it."""
     names = [{im.name for im in m.model.images.values()} for m in models]
     found = []
     for plan in plans[1:]:
@@ -121,8 +122,11 @@ def unjoined_parts(models: list[LocalModel], edges: dict, plans: list[MergePlan]
             reason = (f"{models[u].label} and {models[v].label} align with an MSD of {edge['msd']:.3g}, above "
                       f"--max-msd {options.max_msd:g}")
         found.append({**entry, "nearest": models[v].label, "common_images": common, "reason": reason})
-    if bridged:
-        for part in found:
-            part["reason"] += ("; nor do its photos see enough of the other parts' points to join it as one rigid body "
-                               "(PnP's inliers)")
+    if bridge_failures is not None:
+        first = frozenset(plans[0].clusters) if plans else frozenset()
+        for plan, part in zip(plans[1:], found):
+            inside = frozenset(plan.clusters)
+            why = bridge_failures.get((first, inside)) or bridge_failures.get((inside, first))
+            part["reason"] += ("; nor did the rays between its photos and the first part's points join it as one "
+                               "rigid body" + (f": {why}" if why else ""))
     return found

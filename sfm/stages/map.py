@@ -121,7 +121,8 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         written = write_models(models, _folder(workspace, direct, label), registrations)
         model_names.update({w["path"]: {im.name for im in m.images.values()} for w, m in zip(written, models)})
         per_cluster[k] = {"cluster": label, "images": payloads.sizes[k], "worker": res.worker,
-                          "models": written, "error": res.error, "left_out": growth.left_out() if growth else {}}
+                          "models": written, "error": res.error, "left_out": growth.left_out() if growth else {},
+                          "unjoined": growth.unjoined() if growth else []}
         if res.error is None:  # a failed cluster is tried again by the next run
             ledger.data["map"]["clusters"][label] = per_cluster[k]
             ledger.save()
@@ -146,7 +147,8 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
         fields.update(model_facts(workspace, final_names, per_cluster))
         if len(flat) > 1:
             fields["warnings"] = [several_models_warning([m["registered"] for m in flat], final_names[1:],
-                                                         per_cluster[0].get("left_out", {}))]
+                                                         per_cluster[0].get("left_out", {}),
+                                                         per_cluster[0].get("unjoined", []))]
     failed = fields["failed_clusters"] = [c["cluster"] for c in per_cluster if c["error"]]
     if recorder.enabled:
         rows = [{**c, "unregistered": unregistered.get(c["cluster"], "?")} for c in per_cluster]
@@ -172,10 +174,11 @@ def run_map(workspace: Path, options: MapperOptions, recorder: Recorder | None =
 
 
 def several_models_warning(sizes: list[int], other_names: list[set[str]], left_out: dict[str, str],
-                           shown: int = 3) -> str:
+                           unjoined: list[str] = (), shown: int = 3) -> str:
     """The warning of a cluster that gave several models (``sizes``, largest first): why the
     other models' images (``other_names``) are not in the largest, from its ``left_out``
-    reasons (:meth:`sfm.mapper.growth.Growth.left_out`), ``shown`` of them by name."""
+    reasons (:meth:`sfm.mapper.growth.Growth.left_out`), ``shown`` of them by name, and why the
+    other models did not join it as a whole (``unjoined``, :meth:`sfm.mapper.growth.Growth.unjoined`)."""
     text = (f"{len(sizes)} models: the images did not form one connected reconstruction "
             f"(sizes {', '.join(map(str, sizes))})")
     others = sorted(n for names in other_names for n in names if n in left_out)
@@ -183,7 +186,7 @@ def several_models_warning(sizes: list[int], other_names: list[set[str]], left_o
         why = ", ".join(f"{n} ({left_out[n]})" for n in others[:shown])
         more = f" and {len(others) - shown} more" if len(others) > shown else ""
         text += f"; not in the largest: {why}{more}"
-    return text
+    return "; ".join([text, *unjoined])
 
 
 def map_cluster(task: tuple[MapperInput, MapperOptions]) -> list[Reconstruction]:

@@ -54,10 +54,12 @@ def load_local_models(workspace: Path) -> list[LocalModel]:
     return out
 
 
-def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions) -> dict:
+def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], options: MergeOptions,
+               bridge_failures: dict[tuple[frozenset, frozenset], str] | None = None) -> dict:
     """The content of ``WORK/merge.json``: the cluster graph's nodes and edges (bridges among
     them), each merge component's MinST, anchor and layers, and why the components after the
-    first stayed apart (the merge tried to bridge every part)."""
+    first stayed apart (the merge tried to bridge every part; ``bridge_failures`` as
+    :func:`bridge_parts` gives them)."""
     return {
         "nodes": [{"id": k, "label": m.label, "images": len(m.model.images), "points": len(m.model.points3D)} for k, m in enumerate(models)],
         "edges": [
@@ -73,22 +75,30 @@ def merge_json(models: list[LocalModel], edges: dict, plans: list[MergePlan], op
              "path": {str(k): list(v) for k, v in p.path.items()}, "num_layers": p.num_layers}
             for p in plans
         ],
-        "unjoined": unjoined_parts(models, edges, plans, options, bridged=True),
+        "unjoined": unjoined_parts(models, edges, plans, options, bridge_failures or {}),
     }
 
 
 def bridge_parts(database: Path, mapper_options: MapperOptions, options: MergeOptions, plans: list[MergePlan],
-                 components: list, finished: list[bool] | None = None) -> dict:
+                 components: list, finished: list[bool] | None = None,
+                 why_not: dict[tuple[frozenset, frozenset], str] | None = None) -> dict:
     """The cluster-graph edges that bridge merge plans no common cameras align, where their
     photos see each other's points (``sfm.merge.bridging``): ``components`` are the plans'
     ``(plan, poses, camera parameters, points)`` in their anchors' frames
-    (``sfm.merge.alignment.align_components``), ``finished`` as ``find_bridges`` takes it."""
+    (``sfm.merge.alignment.align_components``), ``finished`` as ``find_bridges`` takes it.
+    ``why_not``: receives why each pair of parts tried did not join, by the local models (node
+    ids) of each side."""
     progress.stage("merge", f"bridge {len(plans)} parts")
     union = ClusterPayloads(database, [sorted(set().union(*(poses for _, poses, _, _ in components)))],
                             fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                             min_inliers=mapper_options.min_num_matches, labels=["parts"])[0]
+    failures: dict[tuple[frozenset, frozenset], str] = {}
     bridges = find_bridges(union, mapper_options, [c[1:] for c in components], seed=mapper_options.seed,
-                           finished=finished)
+                           finished=finished, why_not=failures)
+    if why_not is not None:
+        def nodes(parts: frozenset) -> frozenset:
+            return frozenset(node for k in parts for node in plans[k].clusters)
+        why_not.update({(nodes(a), nodes(b)): why for (a, b), why in failures.items()})
     return bridge_edges(plans, bridges, options.max_msd)
 
 
@@ -142,13 +152,14 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
     with Database(workspace / DATABASE, readonly=True) as db:
         nominal = {cam_id: cam.params for cam_id, cam in db.read_cameras().items()}
     components, all_sims = align_components(models, plans, edges, nominal)
+    bridge_failures: dict[tuple[frozenset, frozenset], str] = {}
     if len(plans) > 1:
-        found = bridge_parts(workspace / DATABASE, mapper_options, options, plans, components)
+        found = bridge_parts(workspace / DATABASE, mapper_options, options, plans, components, why_not=bridge_failures)
         if found:
             edges.update(found)
             plans = plan_components(models, edges)
             components, all_sims = align_components(models, plans, edges, nominal)
-    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options))
+    write_json_atomic(workspace / MERGE, merge_json(models, edges, plans, options, bridge_failures))
     labels = [m.label for m in models]
     local_points = sum(len(m.model.points3D) for m in models)
     if recorder.enabled:

@@ -7,7 +7,8 @@ registered it), ``clusters/<C>/model<m>/points`` (the sample of points, in their
 ``clusters/<C>/model<m>/ba_rms_px`` (the last bundle adjustment's RMS reprojection error),
 ``clusters/<C>/model<m>/calibration`` (what its final bundle adjustments refined of each camera,
 and why), ``clusters/<C>/model<m>/joins`` (the earlier models that joined it as a whole, and
-on what evidence); a model attempt too small to keep is ``clusters/<C>/dropped<a>``, one that
+on what evidence), ``clusters/<C>/model<m>/unjoined`` (those that did not, and which step fell
+short); a model attempt too small to keep is ``clusters/<C>/dropped<a>``, one that
 joined a later model ``clusters/<C>/joined<a>``, one taken apart because a later model
 rejected the focal length it grew at ``clusters/<C>/taken_apart<a>`` (``/taken_apart`` says
 why).  ``clusters/<C>/unregistered`` says why each image in no model was left out;
@@ -80,6 +81,11 @@ def log_growth(recorder: Recorder, growth) -> int:
         if model.joins:
             recorder.log(f"{prefix}/joins", rr.TextDocument("\n".join(f"- {line}" for line in model.joins),
                                                             media_type=rr.MediaType.MARKDOWN))
+        if model.unjoined:
+            lines = [f"- the finished model of {growth.models[k].size} images: {why}" for k, why in model.unjoined.items()]
+            recorder.log(f"{prefix}/unjoined", rr.TextDocument("Earlier models that did not join this one as a "
+                                                               "whole, and why:\n\n" + "\n".join(lines),
+                                                               media_type=rr.MediaType.MARKDOWN))
     recorder.clear_time("registration")
     left_out = list(_left_out(growth))
     lines = [f"| {name} | {reason} |" for name, reason in left_out]
