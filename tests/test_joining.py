@@ -23,6 +23,7 @@ from sfm.stages.synth import run_synth
 from sfm.synthetic.options import SynthOptions
 from sfm.viz.mapping import log_growth
 from sfm.viz.recorder import Recorder
+from sfm.viz.tour import map_text
 
 # The finished model's frame: x_current = SCALE * ROTATION @ x_finished + SHIFT.
 SCALE = 2.5
@@ -230,3 +231,7 @@ def test_the_mapper_joins_a_model_to_the_one_it_could_not_grow_into(tmp_path, mo
             texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
     [unjoined] = [text for entity, text in texts.items() if entity.endswith("/unjoined")]
     assert "- the finished model of 8 images: a reason" in unjoined
+    row = {"cluster": payload.label, "images": 16, "models": [{"registered": 8, "points": 1}] * 2,
+           "unregistered": 0, "unjoined": growth.unjoined()}
+    assert (f"- {payload.label}: model 1 (8 images) did not join model 0 as a whole: a reason"
+            in map_text([row], 16, True, MapperOptions()))  # the map stage's page of the tour

@@ -132,6 +132,9 @@ def map_text(results: list[dict], num_images: int, direct: bool, options) -> str
     workers = len({r.get("worker") for r in results if r.get("worker")})
     where = ("one cluster: its models are the final ones (`sparse/`), nothing is merged" if direct
              else f"{len(results)} clusters, run by {workers} worker process(es) in parallel")
+    apart = [f"- {r['cluster']}: {line}" for r in results for line in r.get("unjoined", [])]
+    apart_text = ("\n\nModels that did not join their cluster's largest as one rigid body "
+                  "(`sfm.mapper.joining`), and the step that fell short:\n\n" + "\n".join(apart)) if apart else ""
     return f"""## 4. Map: a local model per cluster, image by image
 
 **What it does.** Incremental SfM in each cluster, as COLMAP does: an initial pair reconstructed
@@ -147,14 +150,15 @@ choose incremental SfM", in parallel; bounded clusters keep every bundle adjustm
 
 | cluster | images | registered per model | points | unregistered |
 |---|---|---|---|---|
-{chr(10).join(rows)}
+{chr(10).join(rows)}{apart_text}
 
 **In the recording.** On the `registration` timeline, `clusters/<C>/model<m>/`: the cameras as
 frustums with their images (`cams/<name>`), a sample of the points (`points`) and the RMS
 reprojection error after each bundle adjustment (`ba_rms_px`), one step per registered image;
 `clusters/<C>/model<m>/calibration` what the final bundle adjustments refined of each camera (the
 distortion and the principal point only where the photos determine them) and why;
-`clusters/<C>/unregistered` lists the images left out and why.
+`clusters/<C>/model<m>/joins` and `…/unjoined` the earlier models that joined it as one rigid
+body, or did not and why; `clusters/<C>/unregistered` lists the images left out and why.
 """
 
 
