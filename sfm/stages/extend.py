@@ -339,9 +339,11 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     with Database(ext.ws / DATABASE, readonly=True) as database:
         nominal = {cam_id: cam.params for cam_id, cam in database.read_cameras().items()}
     finished = [all(n < num_old for n in p.clusters) for p in plans]
+    bridge_failures: dict[tuple[frozenset, frozenset], str] = {}  # why parts did not join, by their nodes
     if not all(finished[1:]):  # new models no common cameras align: bridged where their photos see the others' points
         parts, _ = align_components(nodes, plans, edges, nominal)
-        found = bridge_parts(ext.ws / DATABASE, o.mapper, o.merge, plans, parts, finished=finished)
+        found = bridge_parts(ext.ws / DATABASE, o.mapper, o.merge, plans, parts, finished=finished,
+                             why_not=bridge_failures)
         if found:
             edges.update(found)
             plans = extension_plans(nodes, edges)
@@ -367,13 +369,15 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
                                    min_inliers=mapper.min_num_matches, labels=["extended"])
         extended = refine_extension(payloads[0], mapper, poses, params, set(poses) - anchor_names,
                                     full_ba=o.extend.full_ba, pooled_params=pooled)
-    others = []  # (model, holds an old model's images)
+    others = []  # (model, holds an old model's images, why no bridge joined it to the main plan)
     for plan, poses, params in components:
         payloads = ClusterPayloads(db, [sorted(poses)], fixed_intrinsics=not mapper.refine_given_intrinsics,
                                    min_inliers=mapper.min_num_matches, labels=[f"N{plan.anchor}"])
         model = refine_with_poses(payloads[0], mapper, poses, params)
         if len(model.images) >= mapper.smallest_model(payloads.sizes[0]):
-            others.append((model, any(n < num_old for n in plan.clusters)))
+            apart = (frozenset(main.clusters), frozenset(plan.clusters))
+            why = bridge_failures.get(apart) or bridge_failures.get(apart[::-1], "")
+            others.append((model, any(n < num_old for n in plan.clusters), why))
     others.sort(key=lambda x: (not x[1], -len(x[0].images)))
     t_ba = time.perf_counter() - t0 - t_merge
 
@@ -393,8 +397,8 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     for k, n in enumerate([n for n in untouched if n != ANCHOR], start=1):
         shutil.copytree(old_folders[n], ext.result / str(k))
     first_own = 1 + len(untouched)
-    registrations = georegister_models([m for m, _ in others], db, mapper)
-    for k, ((model, _), registration) in enumerate(zip(others, registrations), start=first_own):
+    registrations = georegister_models([m for m, _, _ in others], db, mapper)
+    for k, ((model, _, _), registration) in enumerate(zip(others, registrations), start=first_own):
         write_model(model, ext.result / str(k))
         write_georegistration(ext.result / str(k), registration)
     if extended is not None and ext.recorder.enabled:
@@ -402,18 +406,19 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
         log_model(ext.recorder, "world", extended, max_points=ext.recorder.options.record_points)
     num_models = first_own + len(others)
     anchor = olds[0]
-    own = [(k, m) for k, (m, has_old) in enumerate(others, start=first_own) if not has_old]
-    others = [m for m, _ in others]
+    own = [(k, m, why) for k, (m, has_old, why) in enumerate(others, start=first_own) if not has_old]
+    others = [m for m, _, _ in others]
 
     final0 = extended if extended is not None else anchor
     registered_new = sorted(im.name for im in final0.images.values() if im.name in new_set)
     own_new = sorted(im.name for m in others for im in m.images.values() if im.name in new_set)
     warnings = []
     if own:
-        where = ", ".join(f"sparse/{k} ({len(m.images)} images)" for k, m in own)
-        num = sum(1 for _, m in own for im in m.images.values() if im.name in new_set)
+        where = ", ".join(f"sparse/{k} ({len(m.images)} images)" for k, m, _ in own)
+        num = sum(1 for _, m, _ in own for im in m.images.values() if im.name in new_set)
+        why = "".join(f"; sparse/{k} did not join it as one rigid body: {why}" for k, _, why in own if why)
         warnings.append(f"{num} new image(s) share nothing that aligns with sparse/0 and form "
-                        f"{len(own)} model(s) of their own: {where}")
+                        f"{len(own)} model(s) of their own: {where}{why}")
     left = len(new_names) - len(registered_new) - len(own_new)
     if left:
         warnings.append(f"{left} new image(s) are in no model")
