@@ -437,18 +437,14 @@ def test_a_restart_frees_the_finished_models_grown_at_the_focal_length_it_reject
                for i in range(4))
     assert incremental.free_models_grown_far_from(state, {0: 1200.0}, finished, models, growth) == 0
     # the recording shows the model taken apart under its own name, and why
-    from rerun.chunk import RrdReader
+    from _helpers_recording import recording_texts
 
     from sfm.viz.mapping import log_growth
     from sfm.viz.recorder import Recorder
 
     with Recorder(tmp_path / "recording.rrd", tmp_path) as recorder:
         log_growth(recorder, growth)
-    texts = {}
-    for chunk in RrdReader(str(tmp_path / "recording.rrd")).stream():
-        batch = chunk.to_record_batch()
-        if "TextDocument:text" in batch.schema.names:
-            texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
+    texts = recording_texts(tmp_path / "recording.rrd")
     assert "640 px against 2000" in texts["/clusters/C0/taken_apart0/taken_apart"]
     assert not any(path.startswith("/clusters/C0/model1") for path in texts)
 

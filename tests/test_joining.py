@@ -8,6 +8,7 @@ import logging
 
 import numpy as np
 import pytest
+from _helpers_recording import recording_texts
 from rerun.chunk import RrdReader
 from scipy.spatial.transform import Rotation
 
@@ -224,12 +225,8 @@ def test_the_mapper_joins_a_model_to_the_one_it_could_not_grow_into(tmp_path, mo
     assert growth.unjoined() == ["model 1 (8 images) did not join model 0 as a whole: a reason"]
     with Recorder(tmp_path / "apart.rrd", tmp_path) as recorder:
         log_growth(recorder, growth)
-    texts = {}
-    for chunk in RrdReader(str(tmp_path / "apart.rrd")).stream():
-        batch = chunk.to_record_batch()
-        if "TextDocument:text" in batch.schema.names:
-            texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
-    [unjoined] = [text for entity, text in texts.items() if entity.endswith("/unjoined")]
+    [unjoined] = [text for entity, text in recording_texts(tmp_path / "apart.rrd").items()
+                  if entity.endswith("/unjoined")]
     assert "- the finished model of 8 images: a reason" in unjoined
     row = {"cluster": payload.label, "images": 16, "models": [{"registered": 8, "points": 1}] * 2,
            "unregistered": 0, "unjoined": growth.unjoined()}

@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from rerun.chunk import RrdReader
+from _helpers_recording import recording_texts
 from scipy.spatial.transform import Rotation
 
 from backend.sim3 import Sim3
@@ -162,11 +162,7 @@ def test_the_merge_joins_local_models_that_share_no_image(tmp_path, monkeypatch,
         assert edge["bridge"] and edge["msd"] is None and edge["inliers"] >= 30 and plan["unjoined"] == []
         res = evaluate(read_model(tmp_path / "sparse" / "0"), gt)
         assert res.num_registered == 16 and res.auc[1.0] > 0.9
-        texts = {}
-        for chunk in RrdReader(str(tmp_path / "recording.rrd")).stream():
-            batch = chunk.to_record_batch()
-            if "TextDocument:text" in batch.schema.names:
-                texts[str(chunk.entity_path)] = batch.column("TextDocument:text").to_pylist()[-1][0]
+        texts = recording_texts(tmp_path / "recording.rrd")
         merge_tour = next(text for entity, text in texts.items() if entity.startswith("/tour/") and "## 5. Merge" in text)
         assert f"C0/0-C1/0 ({edge['inliers']} of {edge['rays']} rays)" in merge_tour
         assert f"(bridge: {edge['inliers']} of {edge['rays']} rays)" in merge_tour
