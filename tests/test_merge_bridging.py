@@ -23,6 +23,7 @@ from sfm.merge import bridging
 from sfm.merge.bridging import bridge_edges, bridge_weight, find_bridges
 from sfm.merge.cluster_graph import LocalModel, plan_components
 from sfm.merge.options import MergeOptions
+from sfm.merge.refinement import left_out_by_component
 from sfm.stages.merge import run_merge
 from sfm.stages.payloads import load_payloads
 from sfm.stages.synth import run_synth
@@ -174,3 +175,30 @@ def test_the_merge_joins_local_models_that_share_no_image(tmp_path, monkeypatch,
         assert part["reason"] == why
         assert f"local models {part['models'][0]} join no other: {why}" in json.loads(
             (tmp_path / "report.json").read_text())["warnings"]
+
+
+def test_the_images_no_local_model_holds_are_registered_in_the_merged_model(tmp_path):
+    """A cluster whose local SfM made no model leaves its images to the merge: two overlapping
+    local models hold 12 of the orbit's 16 images, and the merged model registers the other 4 by
+    PnP against its points (``register_left_out``), close to the truth; the report lists none
+    as unregistered."""
+    payload, poses = _orbit(tmp_path)
+    names = sorted(poses)
+    for k, (part, moved) in enumerate(((names[:7], False), (names[5:12], True))):
+        folder = tmp_path / "clusters" / f"C{k}" / "0"
+        folder.mkdir(parents=True)
+        write_model(_half(payload, poses, part, moved), folder)
+    result = run_merge(tmp_path, MapperOptions(), MergeOptions(), Recorder(None, tmp_path))
+    assert result.num_models == 1
+    res = evaluate(read_model(tmp_path / "sparse" / "0"), read_gt_table(tmp_path / "gt" / "cameras_gt_opencv.txt"))
+    assert res.num_registered == 16 and res.auc[1.0] > 0.9, res
+    assert json.loads((tmp_path / "report.json").read_text())["unregistered"] == []
+
+
+def test_an_image_no_component_holds_goes_to_the_one_it_shares_most_matches_with():
+    registered = [{"a", "b"}, {"c", "d"}]
+    pairs = (["a", "c", "x", "d", "y", "z", "a"], ["x", "x", "b", "y", "w", "w", "c"], np.array([40, 30, 500, 20, 9, 9, 50]))
+    # x: 40 (first) against 30 (second); y: 20 with the second only; w and z see no registered image
+    assert left_out_by_component(registered, pairs) == [["x"], ["y"]]
+    assert left_out_by_component(registered, (["x", "x"], ["a", "c"], np.array([25, 25]))) == [["x"], []]  # equals: the first
+    assert left_out_by_component([set(), {"a"}], ([], [], np.zeros(0))) == [[], []]

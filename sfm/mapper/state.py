@@ -105,11 +105,17 @@ class MapperState:
         log.debug("%s: %d images, %d pairs, %d tracks, %d observations", payload.label, n,
                   len(self.pair_matches), self.num_tracks, len(self.obs_image))
 
-    def release_pairs(self) -> None:
-        """Drop the verified matches once the tracks are built, for a caller that never picks
-        pairs again (the refinement of merged poses): on a large merged model they are a large
-        share of its memory."""
-        self.pair_matches = {}
+    def release_pairs(self, keep: np.ndarray | None = None) -> None:
+        """Drop the verified matches once the tracks are built, for a caller that picks no
+        initial pair again (the refinement of merged poses): on a large merged model they are a
+        large share of its memory.  ``keep``: images whose pairs stay, for the structure-less
+        registration of those images (``sfm.mapper.structureless``)."""
+        if keep is None or not len(keep):
+            self.pair_matches = {}
+        else:
+            kept = np.zeros(len(self.names), bool)
+            kept[keep] = True
+            self.pair_matches = {(a, b): m for (a, b), m in self.pair_matches.items() if kept[a] or kept[b]}
         self.payload = dataclasses.replace(self.payload, pairs=[])
 
     # ------------------------------------------------------------------ bookkeeping

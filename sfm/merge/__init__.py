@@ -42,7 +42,10 @@ Design:
   rows that join it to the others before any BA could reconcile them, and the parts then
   meet in too few tracks for the BA to close the loop.  The paper finds one round enough;
   clusters joined through thin overlaps need more, because similarity-moved poses make the
-  first triangulation reject observations that the first BA brings back.
+  first triangulation reject observations that the first BA brings back.  Then the photos no
+  local model holds (a cluster whose local SfM found no initial pair, or images its model could
+  not take) are registered in the merged model as incremental SfM registers an image, PnP on
+  the points they see, and the model is refined again: the paper leaves them out.
 - Departures: the MSD is normalised by the common cameras' extent so weights compare across
   pairs of models of different scales; the relative scale's median is anchored at each RANSAC
   hypothesis (robust to up to half the common cameras being wrong) and the rotation comes from
@@ -56,7 +59,8 @@ Modules, in reading order:
 - ``sfm.merge.cluster_graph``: the cluster graph's edges (similarity and MSD) and the merge plan.
 - ``sfm.merge.alignment``: every model in its anchor's frame, and the merged poses and cameras.
 - ``sfm.merge.bridging``: parts of the cluster graph joined from the rays between them.
-- ``sfm.merge.refinement``: re-triangulation and global BA of the merged poses.
+- ``sfm.merge.refinement``: re-triangulation and global BA of the merged poses, and the
+  registration of the photos no local model holds.
 - ``sfm.merge.extension``: new images' local models merged into a finished model held as the
   anchor (Alg. 2 with the anchor given), and the BA of the new part (``graphsfm extend``).
 - ``sfm.merge.options`` also holds ``ExtendOptions`` (``full_ba``).

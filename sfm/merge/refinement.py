@@ -14,6 +14,13 @@ principal point again, on all its photos (``SelfCalibration.retest``): each clus
 its part of them.  They do so only once the merged poses fit the merged tracks
 (:func:`refine_merged`): the tests read the step and covariance of a BA linearised at the
 current state, which the similarity transforms leave off a BA's optimum.
+
+The merged model then registers the photos no local model holds (:func:`register_left_out`):
+those of a cluster whose local SfM found no initial pair, and those a cluster's model could not
+take.  Each is tried as incremental SfM tries an image (PnP on the points it sees, COLMAP's
+terms), now against the whole merged model, whose tracks a small cluster's part of the scene
+may lack; it goes to the merge component it shares the most verified matches with
+(:func:`left_out_by_component`).
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ import numpy as np
 from backend.memory import return_freed_memory
 from sfm.core.model import Reconstruction
 from sfm.mapper.bundle_adjuster import BundleAdjuster
-from sfm.mapper.incremental import MAX_REFINEMENT_CHANGE
+from sfm.mapper.incremental import MAX_REFINEMENT_CHANGE, grow
 from sfm.mapper.options import MapperOptions
 from sfm.mapper.output import to_reconstruction
 from sfm.mapper.payload import MapperInput
@@ -45,15 +52,15 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     points in the merged frame, with the rows each model kept; ``MapperState.seed_points``),
     every other track of the payload is triangulated with the given ``cam_from_world`` poses
     (by image name) and camera parameters (by camera id), then global BA and filtering
-    alternate with re-triangulation (:func:`alternate_until_converged`).  Images without a pose stay
-    unregistered.  These BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
+    alternate with re-triangulation (:func:`alternate_until_converged`).  The payload's images
+    without a pose are then registered where PnP takes them (:func:`register_left_out`).  These BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
     the merged clusters' own global BAs do (``MapperOptions.global_loss_scale``): the merged
     tracks were filtered against poses moved by similarity transforms, not by a BA over them.
     ``calibration``: a list that receives what the BAs refined of each camera, a line per
     camera (``SelfCalibration.report``)."""
     state = MapperState(payload, opts)
     state.camera_filter = False  # nothing would register the dropped images again
-    state.release_pairs()
+    state.release_pairs(keep=np.array([i for i, name in enumerate(state.names) if name not in poses], np.int64))
     del payload  # the caller passes its only reference: the matches go with it
     return_freed_memory()
     state.set_camera_params(camera_params)
@@ -63,6 +70,7 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
         log.info("%s: %d tracks start from the local models' points", state.payload.label, state.seed_points(*points))
     state.retriangulate()
     refine_merged(state, adjuster, opts.loss_scale)
+    register_left_out(state, adjuster, opts.loss_scale)
     if calibration is not None:
         calibration.extend(adjuster.calibration.report())
     return to_reconstruction(state)
@@ -99,3 +107,37 @@ def alternate_until_converged(state: MapperState, adjust) -> int:
         if changed <= MAX_REFINEMENT_CHANGE * max(before, 1):
             break
     return rounds
+
+
+def register_left_out(state: MapperState, adjuster: BundleAdjuster, loss_scale: float) -> int:
+    """Register the images of the refined merged model's payload that have no pose (module
+    docstring) by incremental SfM's growth (``sfm.mapper.incremental.grow``: PnP, triangulation,
+    local and global BAs), then refine again as :func:`refine_merged` does, every camera's
+    self-calibration decided on all the photos; the number of images registered."""
+    before = state.num_registered
+    if before == len(state.names):
+        return 0
+    grow(state, adjuster, None, lambda: None)
+    added = state.num_registered - before
+    if added:
+        log.info("%s: %d of the %d images no local model holds registered in the merged model",
+                 state.payload.label, added, len(state.names) - before)
+        alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=loss_scale))
+    return added
+
+
+def left_out_by_component(registered: list[set[str]], pairs: tuple[list[str], list[str], np.ndarray]) -> list[list[str]]:
+    """The images in no component's ``registered`` names that each component takes: those
+    whose verified matches (``pairs``: first names, second names, inliers) with its registered
+    images outnumber those with any other component's (the first of equals); an image with none
+    is in none."""
+    component = {name: k for k, names in enumerate(registered) for name in names}
+    votes: dict[str, np.ndarray] = {}
+    for a, b, inliers in zip(*pairs):
+        for image, other in ((a, b), (b, a)):
+            if image not in component and other in component:
+                votes.setdefault(image, np.zeros(len(registered)))[component[other]] += inliers
+    out: list[list[str]] = [[] for _ in registered]
+    for image, count in sorted(votes.items()):
+        out[int(np.argmax(count))].append(image)
+    return out

@@ -30,7 +30,7 @@ from sfm.merge.alignment import align_components
 from sfm.merge.bridging import bridge_edges, find_bridges
 from sfm.merge.cluster_graph import LocalModel, build_cluster_graph, plan_components, unjoined_parts
 from sfm.merge.options import MergeOptions
-from sfm.merge.refinement import refine_with_poses
+from sfm.merge.refinement import left_out_by_component, refine_with_poses
 from sfm.stages.georegister import georegister_models
 from sfm.stages.map import failed_clusters_warning, registered_names, write_models
 from sfm.stages.payloads import ClusterPayloads
@@ -172,7 +172,12 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
 
     recorder.stage("refine")
     finals, calibrations = [], []
-    payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) for _, p, _, _ in components],
+    with Database(workspace / DATABASE, readonly=True) as db:
+        name_of = {i: im.name for i, im in db.read_images().items()}
+        first, second, inliers = db.verified_pairs(mapper_options.min_num_matches)
+    left_out = left_out_by_component([set(p) for _, p, _, _ in components],
+                                     ([name_of[int(i)] for i in first], [name_of[int(i)] for i in second], inliers))
+    payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) + extra for (_, p, _, _), extra in zip(components, left_out)],
                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                                min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
     for k, (plan, poses, params, points) in enumerate(components):
