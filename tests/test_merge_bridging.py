@@ -196,9 +196,13 @@ def test_the_images_no_local_model_holds_are_registered_in_the_merged_model(tmp_
 
 
 def test_an_image_no_component_holds_goes_to_the_one_it_shares_most_matches_with():
-    registered = [{"a", "b"}, {"c", "d"}]
-    pairs = (["a", "c", "x", "d", "y", "z", "a"], ["x", "x", "b", "y", "w", "w", "c"], np.array([40, 30, 500, 20, 9, 9, 50]))
-    # x: 40 (first) against 30 (second); y: 20 with the second only; w and z see no registered image
-    assert left_out_by_component(registered, pairs) == [["x"], ["y"]]
-    assert left_out_by_component(registered, (["x", "x"], ["a", "c"], np.array([25, 25]))) == [["x"], []]  # equals: the first
-    assert left_out_by_component([set(), {"a"}], ([], [], np.zeros(0))) == [[], []]
+    # images 0, 1 in component 0, 2, 3 in component 1; 4 to 7 in none
+    component = np.array([0, 0, 1, 1, -1, -1, -1, -1])
+    first, second = np.array([0, 2, 4, 3, 5, 6, 0]), np.array([4, 4, 1, 5, 7, 7, 2])
+    inliers = np.array([40, 30, 500, 20, 9, 9, 50])
+    # 4: 40 + 500 with the first, 30 with the second; 5: 20 with the second only; 6 and 7 see no registered image
+    taken = left_out_by_component(component, first, second, inliers, 2)
+    assert [t.tolist() for t in taken] == [[4], [5]]
+    equal = left_out_by_component(component, np.array([4, 4]), np.array([0, 2]), np.array([25, 25]), 2)
+    assert [t.tolist() for t in equal] == [[4], []]  # the first of equals
+    assert [t.tolist() for t in left_out_by_component(component, np.zeros(0), np.zeros(0), np.zeros(0), 2)] == [[], []]

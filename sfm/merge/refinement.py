@@ -53,7 +53,8 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     every other track of the payload is triangulated with the given ``cam_from_world`` poses
     (by image name) and camera parameters (by camera id), then global BA and filtering
     alternate with re-triangulation (:func:`alternate_until_converged`).  The payload's images
-    without a pose are then registered where PnP takes them (:func:`register_left_out`).  These BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
+    without a pose are then registered where PnP takes them (:func:`register_left_out`).  These
+    BAs keep the local BAs' robust loss scale (``opts.loss_scale``), as
     the merged clusters' own global BAs do (``MapperOptions.global_loss_scale``): the merged
     tracks were filtered against poses moved by similarity transforms, not by a BA over them.
     ``calibration``: a list that receives what the BAs refined of each camera, a line per
@@ -126,18 +127,18 @@ def register_left_out(state: MapperState, adjuster: BundleAdjuster, loss_scale: 
     return added
 
 
-def left_out_by_component(registered: list[set[str]], pairs: tuple[list[str], list[str], np.ndarray]) -> list[list[str]]:
-    """The images in no component's ``registered`` names that each component takes: those
-    whose verified matches (``pairs``: first names, second names, inliers) with its registered
-    images outnumber those with any other component's (the first of equals); an image with none
-    is in none."""
-    component = {name: k for k, names in enumerate(registered) for name in names}
-    votes: dict[str, np.ndarray] = {}
-    for a, b, inliers in zip(*pairs):
-        for image, other in ((a, b), (b, a)):
-            if image not in component and other in component:
-                votes.setdefault(image, np.zeros(len(registered)))[component[other]] += inliers
-    out: list[list[str]] = [[] for _ in registered]
-    for image, count in sorted(votes.items()):
-        out[int(np.argmax(count))].append(image)
-    return out
+def left_out_by_component(component: np.ndarray, first: np.ndarray, second: np.ndarray,
+                          inliers: np.ndarray, num_components: int) -> list[np.ndarray]:
+    """Which images no component holds each component takes (module docstring): ``component``
+    gives each image's component (-1: in none), ``first``, ``second`` and ``inliers`` the verified
+    pairs (image indices, inlier counts).  An image goes to the component whose registered images
+    it shares the most inliers with (the first of equals), an image sharing none to no component;
+    the image indices of each component, ascending."""
+    first, second = np.asarray(first, np.int64), np.asarray(second, np.int64)
+    votes = np.zeros((len(component), max(num_components, 1)))
+    for image, other in ((first, second), (second, first)):
+        rows = (component[image] < 0) & (component[other] >= 0)
+        np.add.at(votes, (image[rows], component[other[rows]]), np.asarray(inliers, float)[rows])
+    voted = np.flatnonzero((component < 0) & (votes.sum(axis=1) > 0))
+    choice = np.argmax(votes[voted], axis=1)
+    return [voted[choice == k] for k in range(num_components)]

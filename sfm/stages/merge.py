@@ -15,6 +15,8 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
 from backend.memory import return_freed_memory
 from graph.merge_plan import MergePlan
 from backend.geometry import rotation_to_quaternion
@@ -102,6 +104,25 @@ def bridge_parts(database: Path, mapper_options: MapperOptions, options: MergeOp
     return bridge_edges(plans, bridges, options.max_msd)
 
 
+def left_out_names(database: Path, registered: list, min_inliers: int) -> list[list[str]]:
+    """For each merge component (``registered``: its image names), the images of the database
+    no component holds that its refinement tries to register
+    (``sfm.merge.refinement.left_out_by_component``, on the pairs of ``min_inliers`` verified
+    inliers or more)."""
+    with Database(database, readonly=True) as db:
+        images = db.read_images()
+        first, second, inliers = db.verified_pairs(min_inliers)
+    ids = np.array(sorted(images), np.int64)
+    names = [images[i].name for i in ids.tolist()]
+    index = {name: k for k, name in enumerate(names)}
+    component = np.full(len(ids), -1, np.int64)
+    for k, held in enumerate(registered):
+        component[[index[name] for name in held]] = k
+    taken = left_out_by_component(component, np.searchsorted(ids, first), np.searchsorted(ids, second), inliers,
+                                  len(registered))
+    return [[names[i] for i in images_of] for images_of in taken]
+
+
 @dataclass(frozen=True)
 class MergeResult:
     num_local_models: int
@@ -172,11 +193,7 @@ def run_merge(workspace: Path, mapper_options: MapperOptions, options: MergeOpti
 
     recorder.stage("refine")
     finals, calibrations = [], []
-    with Database(workspace / DATABASE, readonly=True) as db:
-        name_of = {i: im.name for i, im in db.read_images().items()}
-        first, second, inliers = db.verified_pairs(mapper_options.min_num_matches)
-    left_out = left_out_by_component([set(p) for _, p, _, _ in components],
-                                     ([name_of[int(i)] for i in first], [name_of[int(i)] for i in second], inliers))
+    left_out = left_out_names(workspace / DATABASE, [poses for _, poses, _, _ in components], mapper_options.min_num_matches)
     payloads = ClusterPayloads(workspace / DATABASE, [sorted(p) + extra for (_, p, _, _), extra in zip(components, left_out)],
                                fixed_intrinsics=not mapper_options.refine_given_intrinsics,
                                min_inliers=mapper_options.min_num_matches, labels=[f"M{c}" for c in range(len(components))])
