@@ -416,9 +416,9 @@ def _merge(ext: _Extension, olds: list[Reconstruction], models: list[LocalModel]
     if own:
         where = ", ".join(f"sparse/{k} ({len(m.images)} images)" for k, m, _ in own)
         num = sum(1 for _, m, _ in own for im in m.images.values() if im.name in new_set)
-        why = "".join(f"; sparse/{k} did not join it as one rigid body: {why}" for k, _, why in own if why)
+        reasons = "".join(f"; sparse/{k} did not join it as one rigid body: {why}" for k, _, why in own if why)
         warnings.append(f"{num} new image(s) share nothing that aligns with sparse/0 and form "
-                        f"{len(own)} model(s) of their own: {where}{why}")
+                        f"{len(own)} model(s) of their own: {where}{reasons}")
     left = len(new_names) - len(registered_new) - len(own_new)
     if left:
         warnings.append(f"{left} new image(s) are in no model")
