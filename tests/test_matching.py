@@ -50,7 +50,7 @@ def synthetic_descriptor_pair(seed: int, n_true: int = 1000, n_distract: int = 1
     return quantised(d1), quantised(d2[order]), truth
 
 
-@pytest.mark.parametrize("matcher", ["brute", "flann"])
+@pytest.mark.parametrize("matcher", ["brute", "ivf", "flann"])
 def test_ratio_and_mutual_matcher_recall_and_precision(matcher):
     d1, d2, truth = synthetic_descriptor_pair(0)
     m = match_descriptors(d1, d2, matcher=matcher)

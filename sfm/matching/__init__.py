@@ -13,7 +13,9 @@ Design:
   dataset's own descriptors; optionally each image with the next N in name order (video,
   drone strips).  A pair is ``(id1, id2)`` with ``id1 < id2``.
 - Descriptor matching: nearest neighbour on unit-normalised descriptors, Lowe's ratio test
-  (0.8, COLMAP's) and a mutual check; exact (blocked BLAS) or approximate (FLANN KD-trees).
+  (0.8, COLMAP's) and a mutual check; approximate through an inverted file per image (the
+  default where features are many: a descriptor meets only those of its cell) or exact
+  (blocked BLAS, ``--matcher brute``).
 - Verification, COLMAP's rules with OpenCV's USAC MAGSAC: the essential matrix when both
   cameras have a focal prior (relative pose refined on the inliers), the fundamental matrix
   otherwise, both at COLMAP's 4 px; a homography with more than 0.8 of the E or F inliers marks
@@ -28,6 +30,7 @@ Modules, in reading order:
 
 - ``sfm.matching.options``: ``MatchOptions``, the ``match`` stage's options.
 - ``sfm.matching.pairs``: exhaustive, retrieval (VLAD) and sequential pairs.
+- ``sfm.matching.inverted_file``: one image's inverted file, the approximate nearest neighbours.
 - ``sfm.matching.descriptors``: nearest neighbours, ratio test and mutual check.
 - ``sfm.matching.verification``: E, F and H by USAC, inliers, COLMAP's config codes.
 - ``sfm.matching.pair_matcher``: ``PairMatcher`` and ``match_batch``, the ``match`` stage's task.

@@ -4,10 +4,11 @@ Descriptor matching: nearest neighbour on unit-normalised float32 descriptors, L
 on Euclidean distances (``d1 < max_ratio * d2``) and a mutual check (the match must also be the
 nearest neighbour of its partner). ``brute`` is exact: blocked BLAS products (2 - 2 x.y is the
 squared distance of unit vectors), so its cost grows with the product of the two images'
-feature counts. ``flann`` is a KD-tree (4 trees, 64 checks), approximate (it misses some of the
-exact nearest neighbours), seeded through ``cv2.setRNGSeed`` so it is deterministic. ``auto``
-takes brute up to 2^27 descriptor pairs (about 11.6k x 11.6k features) and flann above, where
-its n log n wins.
+feature counts. ``ivf`` is approximate: an inverted file per image (``sfm.matching.inverted_file``)
+compares a descriptor only with those of its cell, a small share of the product. ``flann`` is a
+KD-tree (4 trees, 64 checks), approximate, seeded through ``cv2.setRNGSeed`` so it is
+deterministic. ``auto`` takes brute below ``IVF_MIN_PRODUCT`` descriptor pairs (about 1.4k x
+1.4k features), where building two inverted files costs more than the product, and ivf above.
 """
 
 from __future__ import annotations
@@ -17,7 +18,10 @@ import threading
 import cv2
 import numpy as np
 
-BRUTE_MAX_PRODUCT = 2**27
+from sfm.matching.inverted_file import InvertedFile, match_inverted
+
+IVF_MIN_PRODUCT = 2**21
+MATCHERS = ("auto", "brute", "ivf", "flann")
 
 
 def normalize_descriptors(descriptors: np.ndarray) -> np.ndarray:
@@ -80,6 +84,16 @@ def _nearest_flann(d1: np.ndarray, d2: np.ndarray, seed: int):
     return best, dist2[:, 0], second, back[best, 0] == np.arange(len(d1))
 
 
+def resolve_matcher(matcher: str, n1: int, n2: int) -> str:
+    """The nearest-neighbour search ``matcher`` means for images of ``n1`` and ``n2`` descriptors
+    (``auto``: ivf from ``IVF_MIN_PRODUCT`` descriptor pairs, brute below)."""
+    if matcher not in MATCHERS:
+        raise ValueError(f"matcher must be one of {'|'.join(MATCHERS)}, got {matcher!r}")
+    if matcher == "auto":
+        return "ivf" if n1 * n2 >= IVF_MIN_PRODUCT else "brute"
+    return matcher
+
+
 def match_descriptors(
     descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio: float = 0.8,
     cross_check: bool = True, matcher: str = "auto", max_distance: float | None = None,
@@ -95,8 +109,10 @@ def match_descriptors(
     d1, d2 = unit(descriptors1), unit(descriptors2)
     if len(d1) == 0 or len(d2) == 0:
         return np.zeros((0, 2), np.int64)
-    if matcher == "auto":
-        matcher = "brute" if len(d1) * len(d2) <= BRUTE_MAX_PRODUCT else "flann"
+    matcher = resolve_matcher(matcher, len(d1), len(d2))
+    if matcher == "ivf":
+        return match_inverted(InvertedFile.build(d1, seed), InvertedFile.build(d2, seed), max_ratio, cross_check,
+                              max_distance)  # fmt: skip
     if matcher == "flann" and min(len(d1), len(d2)) >= 2:
         best, dist2_1, dist2_2, mutual = _nearest_flann(d1, d2, seed)
     else:

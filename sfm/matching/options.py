@@ -27,8 +27,9 @@ class MatchOptions(Options):
     exhaustive_threshold: int = option(
         200, "With pairs auto: the number of images from which retrieval replaces exhaustive matching.", min=2)
     matcher: str = option(
-        "auto", "Nearest-neighbour search: exact (brute), approximate KD-trees (flann), or brute unless both "
-        "images have many features (auto).", choices=("auto", "brute", "flann"))
+        "auto", "Nearest-neighbour search: exact (brute), an approximate inverted file per image (ivf), "
+        "approximate KD-trees (flann), or ivf unless both images have few features (auto).",
+        choices=("auto", "brute", "ivf", "flann"))
     max_ratio: float = option(0.8, "Lowe's ratio test on descriptor distances (COLMAP's max_ratio).", above=0, max=1)
     cross_check: bool = option(True, "Keep only mutual nearest neighbours.")
     max_error_px: float = option(

@@ -19,11 +19,46 @@ import numpy as np
 
 from sfm.io.database import Database
 from sfm.io.database_schema import CameraRecord, TwoViewGeometry
-from sfm.matching.descriptors import match_descriptors, normalize_descriptors
+from sfm.matching.descriptors import match_descriptors, normalize_descriptors, resolve_matcher
+from sfm.matching.inverted_file import InvertedFile, match_inverted
 from sfm.matching.options import MatchOptions
 from sfm.matching.verification import pair_seed, verify_pair
 
-CACHE_BYTES = 256 * 2**20
+# Per worker process: the images' features and search structures held between pairs.  An
+# image's inverted file is about the size of its unit descriptors, so this holds a few hundred
+# images of ten thousand features: retrieval pairs come in image order, and an image's partners
+# are mostly near it in that order.
+CACHE_BYTES = 1024 * 2**20
+
+
+class ImageFeatures:
+    """One image's keypoints and unit float32 descriptors, with the search structures a matcher
+    asks for built once, on first use: the descriptors' C-contiguous transpose (``brute``) and
+    their inverted file (``ivf``, built with the options' seed, so an image's index is the same
+    whatever pair it is in)."""
+
+    def __init__(self, keypoints: np.ndarray, unit: np.ndarray, seed: int) -> None:
+        self.keypoints, self.unit, self.seed = keypoints, unit, seed
+        self._transposed: np.ndarray | None = None
+        self._inverted: InvertedFile | None = None
+
+    @property
+    def transposed(self) -> np.ndarray:
+        if self._transposed is None:
+            self._transposed = np.ascontiguousarray(self.unit.T)
+        return self._transposed
+
+    @property
+    def inverted_file(self) -> InvertedFile:
+        if self._inverted is None:
+            self._inverted = InvertedFile.build(self.unit, self.seed)
+        return self._inverted
+
+    @property
+    def nbytes(self) -> int:
+        extra = (0 if self._transposed is None else self._transposed.nbytes) + (
+            0 if self._inverted is None else self._inverted.nbytes - self.unit.nbytes)
+        return self.keypoints.nbytes + self.unit.nbytes + extra
 
 
 class PairMatcher:
@@ -36,22 +71,19 @@ class PairMatcher:
         self.load, self.camera_of, self.cameras, self.options = load, camera_of, cameras, options
         self.name_of = name_of
         self.verify_options = options.verify_options()
-        self._cache: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
-        self._cache_bytes = 0
+        self._cache: OrderedDict[int, ImageFeatures] = OrderedDict()
 
-    def features(self, image_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(keypoints, unit float32 descriptors, their C-contiguous transpose) of an image."""
+    def features(self, image_id: int) -> ImageFeatures:
+        """An image's features, from the cache or the loader (the least recently used images
+        leave the cache once it holds more than ``CACHE_BYTES``, counted as they grow)."""
         if image_id in self._cache:
             self._cache.move_to_end(image_id)
             return self._cache[image_id]
         keypoints, descriptors = self.load(image_id)
-        unit = normalize_descriptors(descriptors)
-        item = (keypoints, unit, np.ascontiguousarray(unit.T))
+        item = ImageFeatures(keypoints, normalize_descriptors(descriptors), self.options.seed)
         self._cache[image_id] = item
-        self._cache_bytes += sum(a.nbytes for a in item)
-        while self._cache_bytes > CACHE_BYTES and len(self._cache) > 2:
-            _, old = self._cache.popitem(last=False)
-            self._cache_bytes -= sum(a.nbytes for a in old)
+        while len(self._cache) > 2 and sum(f.nbytes for f in self._cache.values()) > CACHE_BYTES:
+            self._cache.popitem(last=False)
         return item
 
     def __call__(
@@ -63,12 +95,16 @@ class PairMatcher:
         workspace, whatever ids its database gave them.  ``id1`` is that first image (the
         database stores a pair either way round)."""
         id1, id2 = sorted((int(pair[0]), int(pair[1])), key=lambda i: (self.name_of[i], i))
-        (kp1, d1, _), (kp2, d2, d2t) = self.features(id1), self.features(id2)
+        f1, f2 = self.features(id1), self.features(id2)
+        kp1, kp2 = f1.keypoints, f2.keypoints
         seed = pair_seed(self.options.seed, self.name_of[id1], self.name_of[id2])
         o = self.options
         t0 = time.perf_counter()
-        matches = match_descriptors(d1, d2, o.max_ratio, o.cross_check, o.matcher, seed=seed, normalized=True,
-                                    transposed2=d2t)  # fmt: skip
+        if resolve_matcher(o.matcher, len(f1.unit), len(f2.unit)) == "ivf":
+            matches = match_inverted(f1.inverted_file, f2.inverted_file, o.max_ratio, o.cross_check)
+        else:
+            matches = match_descriptors(f1.unit, f2.unit, o.max_ratio, o.cross_check, o.matcher, seed=seed,
+                                        normalized=True, transposed2=f2.transposed)  # fmt: skip
         t1 = time.perf_counter()
         cam1, cam2 = self.cameras[self.camera_of[id1]], self.cameras[self.camera_of[id2]]
         geometry = verify_pair(kp1, kp2, matches, cam1, cam2, self.verify_options, seed)
