@@ -121,7 +121,7 @@ class InvertedFile:
             if len(listed) == 0:
                 continue
             sim = sorted_queries[q0:q1] @ self.descriptors[listed].T
-            np.maximum.at(nearest_query, listed, sim.max(axis=0))
+            nearest_query[listed] = np.maximum(nearest_query[listed], sim.max(axis=0))  # a row once a cell
             rows = np.arange(q1 - q0)
             j = np.argmax(sim, axis=1)
             out = order[q0:q1]
