@@ -14,9 +14,9 @@ class SynthOptions(Options):
     """Options of ``graphsfm synth``: a scene with exact ground truth."""
 
     scene: str = option(
-        "orbit", "orbit: a ring of cameras around an object; street: a camera moving between two facades; "
-        "aerial: a nadir grid over hills (all written as a database of simulated matches); rendered: "
-        "PNG images of a textured facade (uses num_images and seed).", choices=(*SCENES, "rendered"))
+        "orbit", "orbit, street, aerial: cameras around an object, between two facades, over hills, as a "
+        "database of simulated matches; rendered: PNG photos of a facade; survey: JPEG photos of a drone "
+        "survey of a town, with EXIF focal length and GPS.", choices=(*SCENES, "rendered", "survey"))
     num_images: int = option(100, "Number of cameras.", min=2)
     observations_per_image: int = option(2000, "Average number of 3D points an image sees.", min=10)
     pixel_noise: float = option(0.5, "Standard deviation of the keypoint noise in pixels per axis.", min=0)
@@ -29,10 +29,16 @@ class SynthOptions(Options):
     recall_max: float = option(0.95, "Highest such share (each pair draws its recall in between).", above=0, max=1)
     distractor_ratio: float = option(0.2, "Unmatched keypoints per image, relative to its observations.", min=0)
     min_inliers: int = option(15, "A pair with fewer verified inliers gets no two-view geometry.", min=1)
-    width: int = option(1280, "Image width in pixels.", min=16)
+    width: int = option(1280, "Image width in pixels (survey: 1600 x 1200 when width and height are left at "
+                        "1280 x 960).", min=16)
     height: int = option(960, "Image height in pixels.", min=16)
     focal: float | None = option(None, "Focal length in pixels (default: the image width).", above=0)
     seed: int = option(0, "The only source of randomness.", min=0)
+    twins: int = option(0, "Survey: building designs that stand, identical, in two or three places (repeated "
+                        "structures); 0: every building unique.", min=0)
+    gps_noise_m: float = option(3.0, "Survey: standard deviation in metres of the EXIF GPS position per "
+                                "axis.", min=0)
+    workers: int = option(0, "Survey: processes that render the photos (0: one per core).", min=0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
