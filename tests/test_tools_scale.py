@@ -34,6 +34,20 @@ def test_overlap_is_the_share_of_the_footprint_both_photos_see():
     assert np.all(np.diag(share) == 0.0)
 
 
+def test_ground_seen_from_directions_too_far_apart_is_not_co_visible():
+    """Two cameras 100 m up, 250 m either side of the origin, both looking at it: the ground
+    there is seen from directions about 136 degrees apart, beyond what SIFT matches."""
+    K = np.array([[400.0, 0, 199.5], [0, 400.0, 149.5], [0, 0, 1]])
+    poses = {}
+    for name, x in (("east", 250.0), ("west", -250.0)):
+        rotation, translation = look_at(np.array([x, 0.0, 100.0]), np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+        poses[name] = GTPose(name, 400, 300, K, rotation, translation)
+    _, share = overlap_matrix(poses)
+    _, share_any_angle = overlap_matrix(poses, max_angle_deg=180.0)
+    assert share_any_angle[0, 1] > 0.1
+    assert share[0, 1] == 0.0
+
+
 def test_the_projection_scales_linear_stages_and_keeps_merge_on_one_machine():
     runs = [{"photos": 1000, "extract_s": 100, "match_s": 200, "cluster_s": 1, "map_s": 50, "merge_s": 10, "final_ba_s": 10},
             {"photos": 2000, "extract_s": 200, "match_s": 400, "cluster_s": 2, "map_s": 100, "merge_s": 40, "final_ba_s": 40}]

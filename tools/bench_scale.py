@@ -22,7 +22,8 @@ prints and publishes the cached results alone):
 - ``retrieval``: on the 200-photo survey's database, the pairs of each image's ``top_k`` most
   similar by VLAD (10, 20, 30, 50) and of ``--pairs spatial`` (GPS), against the ground truth's
   co-visible pairs (a grid of each photo's pixels cast onto the ground by the GT pose lands
-  inside the other photo for at least ``COVISIBLE`` of it): recall of the co-visible pairs,
+  inside the other photo, seen from directions at most ``MAX_VIEW_ANGLE_DEG`` apart, for at
+  least ``COVISIBLE`` of it): recall of the co-visible pairs,
   pairs per image, and recall of the strongly co-visible ones (half the photo).
 - ``endtoend``: ``graphsfm reconstruct`` with defaults on a survey of each ``--sizes`` (rendered
   once into ``DIR/survey<N>``, resumable) in a child process: time per stage (``report.json``),
@@ -57,6 +58,7 @@ from benchmarks_page import add_page_arguments, markdown_table, peer_version, pu
 ROOT = Path(__file__).resolve().parents[1]
 PARTS = ("matcher", "frontend", "retrieval", "endtoend", "projection")
 COVISIBLE, STRONGLY_COVISIBLE = 0.2, 0.5
+MAX_VIEW_ANGLE_DEG = 40.0  # SIFT matches a surface seen from directions up to about this far apart
 TOP_KS = (10, 20, 30, 50)
 
 
@@ -185,9 +187,11 @@ def part_frontend(out: Path, threads: int) -> list[dict]:
 
 
 # ------------------------------------------------------------------------------ retrieval
-def overlap_matrix(gt: dict, ground_z: float = 0.0, grid: tuple[int, int] = (16, 12)) -> tuple[list[str], np.ndarray]:
+def overlap_matrix(gt: dict, ground_z: float = 0.0, grid: tuple[int, int] = (16, 12),
+                   max_angle_deg: float = MAX_VIEW_ANGLE_DEG) -> tuple[list[str], np.ndarray]:
     """Share of a grid of each photo's pixels that, cast onto the plane ``z = ground_z`` by its GT
-    pose, lands inside each other photo (rows: the casting photo)."""
+    pose, lands inside each other photo (rows: the casting photo) and is seen by the two from
+    directions at most ``max_angle_deg`` apart (beyond that SIFT does not match a surface)."""
     names = sorted(gt)
     pts = []
     for name in names:
@@ -202,16 +206,19 @@ def overlap_matrix(gt: dict, ground_z: float = 0.0, grid: tuple[int, int] = (16,
         pts.append(np.where(s > 0, hit, np.nan))
     n = len(names)
     share = np.zeros((n, n))
+    cos_limit = np.cos(np.radians(max_angle_deg))
     for j, name in enumerate(names):
         p = gt[name]
         for i in range(n):
             if i == j:
                 continue
             x = p.rotation @ pts[i] + p.translation[:, None]
+            to_i, to_j = gt[names[i]].center[:, None] - pts[i], p.center[:, None] - pts[i]
             with np.errstate(invalid="ignore", divide="ignore"):
                 uv = (p.K @ x)[:2] / x[2]
+                cos = np.sum(to_i * to_j, axis=0) / (np.linalg.norm(to_i, axis=0) * np.linalg.norm(to_j, axis=0))
                 inside = (x[2] > 0) & (uv[0] >= 0) & (uv[0] < p.width) & (uv[1] >= 0) & (uv[1] < p.height)
-            share[i, j] = np.mean(inside)
+            share[i, j] = np.mean(inside & (cos >= cos_limit))
     return names, share
 
 
