@@ -309,23 +309,29 @@ def part_projection(runs: list[dict]) -> list[dict]:
 
 # ------------------------------------------------------------------------------ page
 def page_text(results: dict) -> str:
-    parts = []
+    contexts = results.get("contexts", {})
+
+    def measured(key: str) -> str:
+        c = contexts.get(key, {})
+        return f"\n\nMeasured {c.get('date')} on {c.get('machine')}; graphsfm at {c.get('code')}." if c else ""
+
+    parts = ["Each part measured by `python tools/bench_scale.py --out DIR --parts PART` (its docstring says how); "
+             "the survey is `graphsfm synth --scene survey` (1600x1200 JPEGs, EXIF focal and GPS, exact GT)."]
     if results.get("matcher"):
         parts.append("### Match stage: the default (inverted file) against `--matcher brute`, same database\n\n"
-                     + markdown_table(results["matcher"]))
+                     + markdown_table(results["matcher"]) + measured("matcher"))
     if results.get("frontend"):
         parts.append("### Front end on the same 200 survey photos and the same pairs: graphsfm against pycolmap\n\n"
-                     + markdown_table(results["frontend"]))
+                     + markdown_table(results["frontend"]) + measured("frontend"))
     if results.get("retrieval"):
         parts.append("### Pairs against the 200-photo survey's co-visibility (ground truth)\n\n"
-                     + markdown_table(results["retrieval"]))
+                     + markdown_table(results["retrieval"]) + measured("retrieval"))
     if results.get("endtoend"):
         rows = sorted(results["endtoend"].values(), key=lambda r: r["photos"])
-        parts.append("### Survey photos to model, defaults, one machine\n\n" + markdown_table(rows))
+        parts.append("### Survey photos to model, defaults, one machine\n\n" + markdown_table(rows) + measured("endtoend"))
     if results.get("projection"):
-        parts.append("### Projected from the largest run (hours)\n\n" + markdown_table(results["projection"]))
-    context = results.get("context", {})
-    parts.append(f"Measured {context.get('date')} on {context.get('machine')}; graphsfm at {context.get('code')}.")
+        parts.append("### Projected from the largest run (hours)\n\n" + markdown_table(results["projection"])
+                     + measured("projection"))
     return "\n\n".join(parts)
 
 
@@ -345,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def save(key: str, value) -> None:
         results[key] = value
-        results["context"] = run_context()
+        results.setdefault("contexts", {})[key] = run_context()
         tmp = store.with_suffix(".tmp")
         tmp.write_text(json.dumps(results, indent=1))
         tmp.replace(store)
