@@ -267,7 +267,7 @@ def part_endtoend(out: Path, n: int) -> dict:
     ws = out / f"survey{n}-reconstruct"
     code, seconds, peak = run_child([sys.executable, "-m", "sfm", "-q", "reconstruct", "--images",
                                      str(folder / "images"), "--workspace", str(ws), "--no-recording"])
-    if code != 0:
+    if code != 0 or not (ws / "sparse" / "0").is_dir():
         raise SystemExit(f"reconstruct of {n} photos failed with exit code {code}; see {ws / 'log.txt'}")
     report = json.loads((ws / "report.json").read_text())
     result = evaluate(read_model(ws / "sparse" / "0"), read_gt_table(folder / "gt" / "cameras_gt_opencv.txt"))
@@ -278,6 +278,22 @@ def part_endtoend(out: Path, n: int) -> dict:
            "pairs": report["pairs_tried"], "clusters": report["num_clusters"]}
     print(markdown_table([row]), flush=True)
     return row
+
+
+def partial_row(out: Path, n: int) -> dict | None:
+    """What an unfinished end-to-end run of ``n`` photos measured: its report's stage times,
+    pairs, verified pairs and clusters so far (None when it has no report)."""
+    report_path = out / f"survey{n}-reconstruct" / "report.json"
+    if not report_path.is_file():
+        return None
+    from sfm.io.database import Database
+
+    report = json.loads(report_path.read_text())
+    with Database(report_path.parent / "database.db", readonly=True) as db:
+        pairs, (_, _, verified) = len(db.pairs_with_geometry()), db.verified_pairs(15)
+    return {"photos": n, **{f"{k}_s": round(v) for k, v in report["times_s"].items() if v},
+            "status": report.get("status"), "pairs": pairs, "verified": len(verified),
+            "clusters": report.get("num_clusters")}
 
 
 def part_projection(runs: list[dict]) -> list[dict]:
@@ -329,6 +345,11 @@ def page_text(results: dict) -> str:
     if results.get("endtoend"):
         rows = sorted(results["endtoend"].values(), key=lambda r: r["photos"])
         parts.append("### Survey photos to model, defaults, one machine\n\n" + markdown_table(rows) + measured("endtoend"))
+    if results.get("endtoend_partial"):
+        parts.append("### Unfinished runs: the stages their report.json had finished when recorded (`--record-partial`; "
+                     "`--parts endtoend` resumes a run)\n\n"
+                     + markdown_table(sorted(results["endtoend_partial"].values(), key=lambda r: r["photos"]))
+                     + measured("endtoend_partial"))
     if results.get("projection"):
         parts.append("### Projected from the largest run (hours)\n\n" + markdown_table(results["projection"])
                      + measured("projection"))
@@ -343,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", nargs="+", type=int, default=[1000, 2000, 5000])
     parser.add_argument("--force", nargs="*", choices=PARTS, default=[])
     parser.add_argument("--report-only", action="store_true")
+    parser.add_argument("--record-partial", action="store_true",
+                        help="record what the unfinished end-to-end runs of --sizes measured so far, then report")
     add_page_arguments(parser)
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -356,7 +379,11 @@ def main(argv: list[str] | None = None) -> int:
         tmp.write_text(json.dumps(results, indent=1))
         tmp.replace(store)
 
-    if not args.report_only:
+    if args.record_partial:
+        rows = {str(n): row for n in args.sizes if str(n) not in results.get("endtoend", {})
+                and (row := partial_row(args.out, n)) is not None}
+        save("endtoend_partial", rows)
+    elif not args.report_only:
         threads = len(os.sched_getaffinity(0))
         for part in args.parts:
             if part in results and part not in args.force and part != "endtoend":
