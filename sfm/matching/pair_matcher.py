@@ -25,9 +25,8 @@ from sfm.matching.options import MatchOptions
 from sfm.matching.verification import pair_seed, verify_pair
 
 # Per worker process: the images' features and search structures held between pairs.  An
-# image's inverted file is about the size of its unit descriptors, so this holds a few hundred
-# images of ten thousand features: retrieval pairs come in image order, and an image's partners
-# are mostly near it in that order.
+# image's inverted file is about the size of its unit descriptors, so this holds over a hundred
+# images of ten thousand features.
 CACHE_BYTES = 1024 * 2**20
 
 
@@ -100,11 +99,12 @@ class PairMatcher:
         seed = pair_seed(self.options.seed, self.name_of[id1], self.name_of[id2])
         o = self.options
         t0 = time.perf_counter()
-        if resolve_matcher(o.matcher, len(f1.unit), len(f2.unit)) == "ivf":
+        matcher = resolve_matcher(o.matcher, len(f1.unit), len(f2.unit))
+        if matcher == "ivf":
             matches = match_inverted(f1.inverted_file, f2.inverted_file, o.max_ratio, o.cross_check)
-        else:
-            matches = match_descriptors(f1.unit, f2.unit, o.max_ratio, o.cross_check, o.matcher, seed=seed,
-                                        normalized=True, transposed2=f2.transposed)  # fmt: skip
+        else:  # only brute uses the transpose: flann would build it for nothing
+            matches = match_descriptors(f1.unit, f2.unit, o.max_ratio, o.cross_check, matcher, seed=seed,
+                                        normalized=True, transposed2=f2.transposed if matcher == "brute" else None)
         t1 = time.perf_counter()
         cam1, cam2 = self.cameras[self.camera_of[id1]], self.cameras[self.camera_of[id2]]
         geometry = verify_pair(kp1, kp2, matches, cam1, cam2, self.verify_options, seed)
