@@ -14,6 +14,7 @@ from sfm.matching.verification import (
     from_colmap_pixels,
     ransac_trials,
     refine_relative_pose,
+    search_inliers,
     sampson_distances,
     sampson_gradients,
     to_colmap_pixels,
@@ -148,6 +149,34 @@ def test_ransac_trials_bound():
     assert ransac_trials(1000, 15, 5, 0.999, 10_000) == 10_000  # the cap
     assert ransac_trials(15, 15, 5, 0.999, 10_000) == 1  # every match must be an inlier
     assert ransac_trials(0, 15, 5, 0.999, 10_000) == 1
+
+
+def test_search_is_sized_for_the_weakest_trusted_edge():
+    """GLOMAP's trusted edge (30 inliers, a quarter of the matches), at least min_num_inliers,
+    half the matches below 60, so the search never shrinks as the matches grow."""
+    assert search_inliers(20, 15) == 15 and search_inliers(30, 15) == 15
+    assert search_inliers(40, 15) == 20 and search_inliers(60, 15) == 30 and search_inliers(64, 15) == 30
+    assert search_inliers(200, 15) == 50 and search_inliers(1000, 15) == 250
+    assert search_inliers(64, 40) == 40  # a stricter min_num_inliers wins
+    counts = [search_inliers(n, 15) for n in range(15, 2000)]
+    assert all(b >= a for a, b in zip(counts, counts[1:]))
+    trials = [ransac_trials(n, search_inliers(n, 15), 5, 0.999, 10_000) for n in range(15, 2000)]
+    assert all(b >= a for a, b in zip(trials, trials[1:]))
+    # 64 chance matches: (30/64)^5 = 0.02263, log(0.001) / log(1 - 0.02263) = 301.8; sized for
+    # 15 inliers the same pair would take 9,764 iterations
+    assert trials[64 - 15] == 302
+
+
+@pytest.mark.parametrize("seed", [30, 31, 32])
+def test_pair_at_the_trusted_inlier_ratio_is_verified(seed):
+    """120 matches of which 30 true (a quarter: the search is sized for exactly this)."""
+    cam = pinhole(prior=True, model="SIMPLE_RADIAL")
+    kp1, kp2, matches, is_true, _, _ = two_view_scene(seed, cam, n=120, outlier_ratio=0.75)
+    assert is_true.sum() == 30
+    g = verify_pair(kp1, kp2, matches, cam, cam, seed=seed)
+    assert g.config == TwoViewConfig.CALIBRATED
+    recall, wrong = inlier_stats(g, is_true)
+    assert recall >= 0.9 and wrong <= 0.1
 
 
 @pytest.mark.parametrize("prior", [True, False])

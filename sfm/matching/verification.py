@@ -17,9 +17,14 @@ For the raw matches of a pair:
 4. Fewer than ``min_num_inliers`` matches or inliers, or no model: DEGENERATE (1), no inliers, so
    a resumed run knows the pair was tried.
 5. RANSAC iterations: at most ``max_iterations``, and no more than needed to draw, with
-   ``confidence``, one all-inlier sample if ``min_num_inliers`` of the matches are inliers
-   (:func:`ransac_trials`; for H, ``max_h_inlier_ratio`` of the E/F inliers): a model with
-   fewer is rejected anyway, and most pairs of an exhaustive match are chance matches.
+   ``confidence``, one all-inlier sample of the weakest model worth looking for
+   (:func:`ransac_trials`, :func:`search_inliers`; for H, ``max_h_inlier_ratio`` of the E/F
+   inliers).  That model is one the field's global mapper trusts as an edge of its view graph
+   (GLOMAP, now COLMAP's global mapper: at least 30 inliers and a quarter of the matches), and
+   never less than ``min_num_inliers``.  A weaker model found on the way is still kept when it
+   has ``min_num_inliers``; it is only not searched for to the end.  Most pairs that retrieval
+   proposes have a few dozen chance matches and no model, and sizing their search for 15
+   inliers among 60 matches costs the full ``max_iterations`` of the 5-point solver each.
 
 Randomness: every USAC call gets ``UsacParams.randomGeneratorState`` from the caller's seed, so
 the result depends only on (seed, input) - not on the process or on the order of pairs. (The
@@ -85,15 +90,28 @@ def pair_seed(seed: int, name1: str, name2: str) -> int:
     return int(np.random.SeedSequence([int(seed), *words]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
+# The weakest edge the global mapper of the field trusts (GLOMAP's InlierThresholdOptions
+# min_inlier_num and min_inlier_ratio): what verification's search is sized to find.
+SEARCH_MIN_INLIERS = 30
+SEARCH_MIN_INLIER_RATIO = 0.25
+
+
+def search_inliers(num_matches: int, min_num_inliers: int) -> float:
+    """The inlier count RANSAC's iterations are sized for (module docstring, 5): the weakest
+    trusted edge, ``SEARCH_MIN_INLIERS`` and ``SEARCH_MIN_INLIER_RATIO`` of the matches, and at
+    least ``min_num_inliers``.  Below ``2 * SEARCH_MIN_INLIERS`` matches, where 30 inliers would
+    be more than half of them, it is half the matches: the count rises from COLMAP's 15 (at 30
+    matches) to 30 (at 60), so a pair with more matches never gets fewer iterations."""
+    n = float(num_matches)
+    return max(float(min_num_inliers), SEARCH_MIN_INLIER_RATIO * n, min(float(SEARCH_MIN_INLIERS), n / 2.0))
+
+
 def ransac_trials(
     num_matches: int, needed_inliers: float, sample_size: int, confidence: float, cap: int
 ) -> int:
     """Iterations after which RANSAC has, with ``confidence``, drawn one all-inlier sample of
     ``sample_size`` if at least ``needed_inliers`` of the ``num_matches`` are inliers; at most
-    ``cap``.  A model with fewer inliers than that is rejected anyway, so iterating longer only
-    looks for something the test discards (COLMAP bounds its trials the same way, through
-    ``min_inlier_ratio``).  Most pairs of an exhaustive match have a few dozen chance matches and
-    no model: without this bound each of them would run all ``cap`` iterations."""
+    ``cap`` (COLMAP bounds its trials the same way, through ``min_inlier_ratio``)."""
     if confidence >= 1.0:
         return int(cap)  # certainty needs every iteration
     ratio = min(float(needed_inliers) / max(int(num_matches), 1), 1.0)
@@ -242,9 +260,8 @@ def _calibrated(camera: CameraLike) -> bool:
 def _essential(x1n, x2n, threshold_n, scale, max_error_px, options, state):
     """(inlier mask, E, R, t) of the calibrated model, or None when estimation fails."""
     eye, zero = np.eye(3), np.zeros(5)
-    trials = ransac_trials(
-        len(x1n), options.min_num_inliers, 5, options.confidence, options.max_iterations
-    )
+    trials = ransac_trials(len(x1n), search_inliers(len(x1n), options.min_num_inliers), 5,
+                           options.confidence, options.max_iterations)
     E, mask = cv2.findEssentialMat(
         x1n, x2n, eye, eye, zero, zero, _usac(threshold_n, options, state, trials)
     )
@@ -303,9 +320,8 @@ def verify_pair(
             config = TwoViewConfig.CALIBRATED
             qvec, tvec = rotation_to_quaternion(rotation), translation.ravel().copy()
         else:
-            trials = ransac_trials(
-                len(p1), options.min_num_inliers, 7, options.confidence, options.max_iterations
-            )
+            trials = ransac_trials(len(p1), search_inliers(len(p1), options.min_num_inliers), 7,
+                                   options.confidence, options.max_iterations)
             F, mask = cv2.findFundamentalMat(p1, p2, _usac(thr, options, seed, trials))
             if F is None or F.shape != (3, 3) or mask is None:
                 return _degenerate()
