@@ -300,3 +300,44 @@ def test_match_options_reject_unknown_choices():
         MatchOptions(matcher="exact")
     with pytest.raises(ValueError):
         MatchOptions(pairs="vocab_tree")
+
+
+def _lru_loads(order, capacity):
+    """Feature loads of a worker whose cache holds ``capacity`` images, taking pairs in ``order``."""
+    from collections import OrderedDict
+
+    cache, loads = OrderedDict(), 0
+    for pair in order:
+        for image in pair:
+            if image in cache:
+                cache.move_to_end(image)
+                continue
+            loads += 1
+            cache[image] = True
+            if len(cache) > capacity:
+                cache.popitem(last=False)
+    return loads
+
+
+def test_cache_order_reads_each_image_a_few_times():
+    """A 40 x 40 block of photos, each paired with its neighbours up to two steps away, ids
+    shuffled: sorted by id, a cache of 120 images loads each image ten times; in
+    ``cache_order`` (the same pairs) at most two and a half times."""
+    from sfm.matching.pair_matcher import cache_order
+
+    side = 40
+    ids = np.random.default_rng(0).permutation(side * side) + 1
+    grid = ids.reshape(side, side)
+    pairs = set()
+    for r in range(side):
+        for c in range(side):
+            for dr in range(0, 3):
+                for dc in range(-2, 3):
+                    if (dr, dc) > (0, 0) and 0 <= r + dr < side and 0 <= c + dc < side:
+                        a, b = int(grid[r, c]), int(grid[r + dr, c + dc])
+                        pairs.add((min(a, b), max(a, b)))
+    pairs = sorted(pairs)
+    ordered = cache_order(pairs, 120)
+    assert sorted(ordered) == pairs
+    assert _lru_loads(pairs, 120) > 8 * side * side
+    assert _lru_loads(ordered, 120) < 2.5 * side * side

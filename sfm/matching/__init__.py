@@ -20,7 +20,9 @@ Design:
   cameras have a focal prior (relative pose refined on the inliers), the fundamental matrix
   otherwise, both at COLMAP's 4 px; a homography with more than 0.8 of the E or F inliers marks
   the pair planar or panoramic; fewer than ``min_num_inliers`` (15) inliers make it
-  degenerate, stored so that a rerun knows it was tried.
+  degenerate, stored so that a rerun knows it was tried.  RANSAC's iterations are sized to
+  find the weakest edge that COLMAP's global mapper (GLOMAP) trusts, 30 inliers and a quarter
+  of the matches; a weaker model met on the way is kept.
 - Randomness comes from the seed and the pair's image names, and a pair is matched from the
   image whose name sorts first, so any number of workers, any order of pairs and any image ids
   (an extension's images come after the old ones) give the same matches.  F and H are held in OpenCV's pixel convention and converted when the

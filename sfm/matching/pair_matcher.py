@@ -60,6 +60,42 @@ class ImageFeatures:
         return self.keypoints.nbytes + self.unit.nbytes + extra
 
 
+# What one image's features take in the cache, per keypoint: its row (4 float32), its unit
+# descriptor (128 float32) and its inverted file's listings (int64; about ten per descriptor at
+# inverted_file.CELL_MARGIN).
+CACHED_BYTES_PER_KEYPOINT = 4 * 4 + 128 * 4 + 10 * 8
+
+
+def images_in_cache(mean_keypoints: float) -> int:
+    """How many images of ``mean_keypoints`` features a worker's cache holds."""
+    return max(2, int(CACHE_BYTES // max(CACHED_BYTES_PER_KEYPOINT * mean_keypoints, 1.0)))
+
+
+def cache_order(pairs: list[tuple[int, int]], capacity_images: int) -> list[tuple[int, int]]:
+    """``pairs`` reordered so that a worker whose cache holds ``capacity_images`` images reads
+    each image's features about once (the order changes no result: each pair's matches depend
+    only on its two images and the seed).  Images are numbered along the reverse Cuthill-McKee
+    order of the pair graph, which gives images that share pairs nearby numbers, then the pairs
+    are taken block by block of ``capacity_images // 2`` numbers (by the block of the larger
+    number, then of the smaller): one block pair needs at most two blocks of images."""
+    if len(pairs) < 2:
+        return list(pairs)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    ids, index = np.unique(np.asarray(pairs, np.int64).reshape(-1, 2), return_inverse=True)
+    index = index.reshape(-1, 2)
+    n = len(ids)
+    graph = coo_matrix((np.ones(len(index)), (index[:, 0], index[:, 1])), shape=(n, n)).tocsr()
+    rank = np.empty(n, np.int64)
+    rank[reverse_cuthill_mckee(graph + graph.T, symmetric_mode=True)] = np.arange(n)
+    first, second = rank[index[:, 0]], rank[index[:, 1]]
+    low, high = np.minimum(first, second), np.maximum(first, second)
+    block = max(1, capacity_images // 2)
+    order = np.lexsort((high, low, low // block, high // block))
+    return [pairs[k] for k in order.tolist()]
+
+
 class PairMatcher:
     """Matches and verifies pairs, reading features from a database through an LRU cache."""
 

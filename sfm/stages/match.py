@@ -6,8 +6,10 @@ selects pairs (``sfm.matching.pairs``), matches and verifies them in batches on 
 (``sfm.matching.pair_matcher``, ``sfm.execution``) and writes raw matches and two-view
 geometries back, one transaction per batch of results, so a killed run loses at most one batch.
 Pairs that already have a two-view geometry row are skipped: rerunning resumes.  Local workers
-read the features from the database themselves; remote ones get them with their batch.  Any
-number of workers gives the same results (seeds per pair, results written in pair order).
+read the features from the database themselves; remote ones get them with their batch.  The
+pairs run in an order that keeps each worker's images in its feature cache
+(``sfm.matching.pair_matcher.cache_order``); any order and any number of workers give the same
+results (seeds per pair).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from sfm.io.database_schema import COORDINATES_WGS84
 from sfm.io.ledger import options_record, resume_or_restart
 from sfm.io.report import update_report
 from sfm.matching.options import MatchOptions
-from sfm.matching.pair_matcher import PairBatch, close_matchers, match_batch
+from sfm.matching.pair_matcher import PairBatch, cache_order, close_matchers, images_in_cache, match_batch
 from sfm.matching.pairs import extension_pairs, select_pairs
 from sfm.matching.verification import to_colmap_pixels
 from sfm.io.database_schema import TwoViewConfig
@@ -41,7 +43,7 @@ logger = logging.getLogger(__name__)
 
 BATCH_PAIRS = 100  # results written per transaction
 LOCAL_BATCH = 16  # pairs per task when workers read the database themselves
-REMOTE_BATCH = 64  # pairs per task when their features travel with them (one image's row, in exhaustive order)
+REMOTE_BATCH = 64  # pairs per task when their features travel with them
 
 
 @dataclass(frozen=True)
@@ -67,7 +69,7 @@ class MatchResult:
 
 def _batches(db: Database, todo: list[tuple[int, int]], camera_of, cameras, names, options: MatchOptions,
              size: int, remote: bool) -> Iterator[PairBatch]:
-    """Consecutive pairs (exhaustive order keeps one image fixed) with the cameras they need;
+    """Consecutive pairs (``cache_order`` gives them few images) with the cameras they need;
     for remote workers, with their images' features."""
     for start in range(0, len(todo), size):
         pairs = todo[start:start + size]
@@ -149,6 +151,8 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         logger.info("%d images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(usable), len(pairs), skipped, len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
+        counts = db.keypoint_counts()
+        todo = cache_order(todo, images_in_cache(float(np.mean([counts[i] for i in usable]))))
         times = _process(db, todo, camera_of, db.read_cameras(), names, options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
         if recorder.enabled:
@@ -198,6 +202,8 @@ def match_extension(workspace: Path, new_names: list[str], options: MatchOptions
         logger.info("extension: %d new and %d old images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(new), len(old), len(pairs), len(pairs) - len(todo), len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
+        counts = db.keypoint_counts()
+        todo = cache_order(todo, images_in_cache(float(np.mean([counts[i] for i in usable]))))
         times = _process(db, todo, camera_of, db.read_cameras(), names, options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
     return MatchResult(
