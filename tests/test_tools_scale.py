@@ -12,7 +12,7 @@ from backend.geometry import look_at
 from sfm.evaluation.ground_truth import GTPose
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_scale import overlap_matrix, part_projection  # noqa: E402
+from bench_scale import finished_runs, overlap_matrix, part_projection  # noqa: E402
 
 
 def nadir(name: str, x: float, height: float = 100.0) -> GTPose:
@@ -58,3 +58,20 @@ def test_the_projection_scales_linear_stages_and_keeps_merge_on_one_machine():
     assert ten["match_h"] == pytest.approx(400 * 5 / 3600 / 10, abs=0.01)
     assert ten["merge_h"] == one["merge_h"] == pytest.approx(40 * 25 / 3600, abs=0.01)  # (10000/2000)^2
     assert one["bound by"] == "match" and rows[(50_000, 10)]["bound by"] in ("merge", "final_ba")
+
+
+def test_a_resumed_run_sums_the_stage_times_of_both_invocations():
+    """The unfinished invocation's stages plus the finishing one's; wall and peak its own;
+    a run without an earlier invocation is left as it is."""
+    results = {
+        "endtoend": {"1000": {"photos": 1000, "wall_s": 977, "peak_rss_gb": 8.39, "extract_s": 0, "match_s": 42,
+                              "map_s": 1, "merge_s": 32, "final_ba_s": 898, "total_s": 973},
+                     "200": {"photos": 200, "wall_s": 500, "extract_s": 100, "total_s": 490}},
+        "endtoend_partial": {"1000": {"photos": 1000, "extract_s": 786, "match_s": 2098, "cluster_s": 1,
+                                      "map_s": 566, "total_s": 3451, "status": "running"}},
+    }
+    small, big = finished_runs(results)
+    assert small == results["endtoend"]["200"]
+    assert (big["extract_s"], big["match_s"], big["cluster_s"], big["map_s"]) == (786, 2140, 1, 567)
+    assert (big["merge_s"], big["final_ba_s"], big["total_s"]) == (32, 898, 4424)
+    assert (big["wall_s"], big["peak_rss_gb"], big["invocations"]) == (977, 8.39, 2)

@@ -296,6 +296,30 @@ def partial_row(out: Path, n: int) -> dict | None:
             "clusters": report.get("num_clusters")}
 
 
+STAGE_COLUMNS = ("extract_s", "match_s", "cluster_s", "map_s", "merge_s", "final_ba_s", "extend_s", "total_s")
+
+
+def with_earlier_invocation(finished: dict, partial: dict | None) -> dict:
+    """A run that an earlier, unfinished invocation started (``--record-partial``'s row of the
+    same photos) and a resumed one finished: each stage's seconds summed over the two (the time
+    the model took), ``wall_s`` and ``peak_rss_gb`` those of the finishing invocation."""
+    if not partial or partial.get("photos") != finished.get("photos"):
+        return finished
+    row = dict(finished)
+    for column in STAGE_COLUMNS:
+        if column in partial or column in finished:
+            row[column] = finished.get(column, 0) + partial.get(column, 0)
+    row["invocations"] = 2
+    return row
+
+
+def finished_runs(results: dict) -> list[dict]:
+    """The finished end-to-end runs by size, each summed with its unfinished earlier invocation."""
+    partial = results.get("endtoend_partial", {})
+    return sorted((with_earlier_invocation(r, partial.get(k)) for k, r in results.get("endtoend", {}).items()),
+                  key=lambda r: r["photos"])
+
+
 def part_projection(runs: list[dict]) -> list[dict]:
     """Stage times at 10,000 and 50,000 photos from the measured ones (see the module docstring)."""
     runs = sorted(runs, key=lambda r: r["photos"])
@@ -343,10 +367,12 @@ def page_text(results: dict) -> str:
         parts.append("### Pairs against the 200-photo survey's co-visibility (ground truth)\n\n"
                      + markdown_table(results["retrieval"]) + measured("retrieval"))
     if results.get("endtoend"):
-        rows = sorted(results["endtoend"].values(), key=lambda r: r["photos"])
-        parts.append("### Survey photos to model, defaults, one machine\n\n" + markdown_table(rows) + measured("endtoend"))
+        parts.append("### Survey photos to model, defaults, one machine\n\n" + markdown_table(finished_runs(results))
+                     + measured("endtoend") + "\n\nA run with `invocations` 2 was finished by resuming an unfinished "
+                     "one (below): its stage times are summed over both, `wall_s` and `peak_rss_gb` are the "
+                     "finishing invocation's.")
     if results.get("endtoend_partial"):
-        parts.append("### Unfinished runs: the stages their report.json had finished when recorded (`--record-partial`; "
+        parts.append("### Runs recorded unfinished: the stages their report.json had finished when recorded (`--record-partial`; "
                      "`--parts endtoend` resumes a run)\n\n"
                      + markdown_table(sorted(results["endtoend_partial"].values(), key=lambda r: r["photos"]))
                      + measured("endtoend_partial"))
@@ -380,8 +406,10 @@ def main(argv: list[str] | None = None) -> int:
         tmp.replace(store)
 
     if args.record_partial:
-        rows = {str(n): row for n in args.sizes if str(n) not in results.get("endtoend", {})
-                and (row := partial_row(args.out, n)) is not None}
+        finished = results.get("endtoend", {})
+        rows = {k: v for k, v in results.get("endtoend_partial", {}).items() if k in finished}  # kept for the sums
+        rows |= {str(n): row for n in args.sizes if str(n) not in finished
+                 and (row := partial_row(args.out, n)) is not None}
         save("endtoend_partial", rows)
     elif not args.report_only:
         threads = len(os.sched_getaffinity(0))
@@ -405,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
                     runs[str(n)] = part_endtoend(args.out, n)
                     save("endtoend", runs)
             elif part == "projection":
-                save(part, part_projection(list(results.get("endtoend", {}).values())))
+                save(part, part_projection(finished_runs(results)))
     text = page_text(results)
     print(text)
     publish(args, "scale", "Scale: front end, pairs and survey photos to model", text)
