@@ -151,8 +151,6 @@ def run_match(workspace: Path, options: MatchOptions = MatchOptions(), executor=
         logger.info("%d images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(usable), len(pairs), skipped, len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
-        counts = db.keypoint_counts()
-        todo = cache_order(todo, images_in_cache(float(np.mean([counts[i] for i in usable]))))
         times = _process(db, todo, camera_of, db.read_cameras(), names, options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
         if recorder.enabled:
@@ -202,8 +200,6 @@ def match_extension(workspace: Path, new_names: list[str], options: MatchOptions
         logger.info("extension: %d new and %d old images, %d pairs selected, %d already verified (resumed), %d to match",
                     len(new), len(old), len(pairs), len(pairs) - len(todo), len(todo))  # fmt: skip
         camera_of = {i: r.camera_id for i, r in images.items()}
-        counts = db.keypoint_counts()
-        todo = cache_order(todo, images_in_cache(float(np.mean([counts[i] for i in usable]))))
         times = _process(db, todo, camera_of, db.read_cameras(), names, options, executor)
         _, _, inliers = db.verified_pairs(options.min_num_inliers)
     return MatchResult(
@@ -215,7 +211,11 @@ def match_extension(workspace: Path, new_names: list[str], options: MatchOptions
 
 
 def _process(db: Database, todo: list[tuple[int, int]], camera_of, cameras, names, options: MatchOptions, executor):
-    """Run the pairs in batches on ``executor``, write results in order; (t_match, t_verify)."""
+    """Run the pairs in batches on ``executor``, in ``cache_order``, and write the results;
+    (t_match, t_verify)."""
+    if todo:
+        counts = db.keypoint_counts()
+        todo = cache_order(todo, images_in_cache(float(np.mean([counts[i] for p in todo for i in p]))))
     workers = executor.num_workers() if executor.remote else executor.workers
     size = max(1, min(REMOTE_BATCH if executor.remote else LOCAL_BATCH, len(todo) // ((4 if executor.remote else 8) * workers)))
     t_match = t_verify = 0.0
