@@ -136,7 +136,11 @@ class BAResult:
     success: the optimiser ran and did not increase the cost; converged: it stopped before
     max_iterations; last_decrease: the relative cost decrease of its last iteration (0 when it
     made none; the largest over the parts of a partitioned BA), which says how far from the
-    optimum a loose ``relative_tolerance`` stopped it.
+    optimum a loose ``relative_tolerance`` stopped it; initial_cost / final_cost: GTSAM's cost
+    (half the sum of the robust losses of the whitened errors, priors included; summed over the
+    parts of a partitioned BA); stopped: why the optimiser stopped, in words
+    (``backend.gtsam_solver.stop_reason``); solver_messages: the lines GTSAM's C++ code
+    printed (a ``CheiralityException`` each), kept off the terminal.
     """
 
     rotations: np.ndarray
@@ -152,3 +156,7 @@ class BAResult:
     success: bool
     converged: bool
     last_decrease: float = 0.0
+    initial_cost: float = float("nan")
+    final_cost: float = float("nan")
+    stopped: str = ""
+    solver_messages: int = 0

@@ -42,7 +42,7 @@ from gtsam.symbol_shorthand import K, L, X
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.camera_models import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2
-from backend.gtsam_solver import AUTO_METIS_OBSERVATIONS, gauss_newton_or_lm, lm_optimizer, optimize_or_keep, robust_noise
+from backend.gtsam_solver import AUTO_METIS_OBSERVATIONS, captured_stdout, robust_noise, solve
 
 logger = logging.getLogger(__name__)
 Array = np.ndarray
@@ -281,27 +281,21 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     poses in ``problem.fixed_poses``.  Errors reported are in pixels.
     """
     start = time.perf_counter()
-    built = _build(problem, options)
-    graph, values, levels, refined = built.graph, built.values, built.levels, built.refined
+    with captured_stdout("bundle adjustment") as printed:
+        built = _build(problem, options)
+        graph, values = built.graph, built.values
+        built_s = time.perf_counter() - start
+        logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
+        history: list[tuple[float, float]] = []
+        run = solve(graph, values, options, history, "bundle adjustment")
+        initial_cost, final_cost = graph.error(values), graph.error(run.values)
+    result, levels, refined = run.values, built.levels, built.refined
     observed, seen_points, cameras = built.observed, built.seen_points, built.cameras
     rotations, translations = np.asarray(problem.rotations, float), np.asarray(problem.translations, float)
     points, camera_params = np.asarray(problem.points, float), problem.camera_params
     obs_image = np.asarray(problem.obs_image, np.int64)
     initial_err = problem.reprojection_errors()
-    history: list[tuple[float, float]] = []
-    built_s = time.perf_counter() - start
-    logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
-    if options.optimizer == "gauss_newton_or_lm":
-        result, success, iterations, converged = gauss_newton_or_lm(graph, values, options, history,
-                                                                    "bundle adjustment")
-    elif options.optimizer == "lm":
-        optimizer = lm_optimizer(graph, values, options, history)
-        result, success = optimize_or_keep(optimizer, values, "bundle adjustment")
-        iterations = optimizer.iterations()
-        converged = iterations < options.max_iterations
-    else:
-        raise ValueError(f"unknown optimizer {options.optimizer!r}; use 'lm' or 'gauss_newton_or_lm'")
-    success = success and graph.error(result) <= graph.error(values)
+    success = run.success and final_cost <= initial_cost
     rot_out, trans_out, pts_out = rotations.copy(), translations.copy(), points.copy()
     for i in set(observed.tolist()) - set(problem.fixed_poses):
         rot_out[i], trans_out[i] = cam_from_world_from_pose3(result.atPose3(X(i)))
@@ -320,14 +314,18 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
         initial_rms=rms(initial_err),
         final_rms=rms(final_err),
         final_mean_error=float(final_err.mean()) if len(final_err) else 0.0,
-        iterations=iterations,
+        iterations=run.iterations,
         time_s=time.perf_counter() - start,
         num_observations=len(obs_image),
         success=success,
-        converged=converged,
+        converged=run.converged,
         last_decrease=(history[-1][0] - history[-1][1]) / max(history[-1][0], 1e-300) if history else 0.0,
+        initial_cost=initial_cost,
+        final_cost=final_cost,
+        stopped=run.stopped if final_cost <= initial_cost else f"{run.stopped}; the cost rose",
+        solver_messages=printed.lines,
     )
-    summary = f"{res.initial_rms:.4f} -> {res.final_rms:.4f} px, {res.iterations} iterations"
+    summary = f"{res.initial_rms:.4f} -> {res.final_rms:.4f} px, {res.iterations} iterations, stopped: {res.stopped}"
     level = logging.INFO if options.verbose else logging.DEBUG
     logger.log(level, "BA on %d observations: RMS %s, %.2f s", len(obs_image), summary, res.time_s)
     return res
@@ -358,7 +356,8 @@ def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array
     last = set(keys)
     others = [k for k in values.keys() if k not in last]
     try:
-        linear = graph.linearize(values)
+        with captured_stdout("calibration step"):
+            linear = graph.linearize(values)
         if graph.size() > AUTO_METIS_OBSERVATIONS:  # the BA's own choice (backend.gtsam_solver)
             metis = gtsam.Ordering.MetisNonlinearFactorGraph(graph)
             order = [k for k in (metis.at(i) for i in range(metis.size())) if k not in last]

@@ -3,9 +3,11 @@
 The solver plumbing shared by bundle adjustment and pose refinement: the robust measurement
 noise (Huber, Cauchy or none on an isotropic 1 px sigma), the optimiser with its elimination
 ordering ("points_first": every point eliminated first, the Schur ordering of BA; GTSAM's
-METIS / COLAMD; "auto": points first for small problems, METIS for large ones), stopping rules and an iteration log, and running it with GTSAM's stdout
-chatter sent to the debug log and a GTSAM error (e.g. an indeterminant system) turned into
-"keep the input values". The options are those of :class:`backend.ba_problem.BAOptions`.
+METIS / COLAMD; "auto": points first for small problems, METIS for large ones), stopping rules,
+an iteration log and why the optimiser stopped; a GTSAM error (e.g. an indeterminant system)
+turned into "keep the input values"; and what GTSAM's C++ code prints on stdout counted and
+sent to the debug log, never to the terminal (:func:`captured_stdout`).  The options are those
+of :class:`backend.ba_problem.BAOptions`.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import logging
 import os
 import sys
 import tempfile
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
@@ -98,14 +102,13 @@ def predicted_rest(decreases: list[float]) -> float:
     return decreases[-1] * rate / (1.0 - rate) if rate < 1.0 else float("inf")
 
 
-def _run(optimizer, what: str):
-    """``optimizer.optimize()`` with GTSAM's stdout sent to the log; a predicted convergence
-    returns the values of the iteration that predicted it."""
-    with _quiet_stdout(what):
-        try:
-            return optimizer.optimize()
-        except PredictedConvergence:
-            return optimizer.values()
+def _run(optimizer) -> tuple[gtsam.Values, bool]:
+    """``optimizer.optimize()``; a predicted convergence returns the values of the iteration
+    that predicted it.  ``(values, whether the prediction stopped it)``."""
+    try:
+        return optimizer.optimize(), False
+    except PredictedConvergence:
+        return optimizer.values(), True
 
 
 def lm_optimizer(graph, values, options: BAOptions, history: list | None = None) -> gtsam.LevenbergMarquardtOptimizer:
@@ -115,55 +118,127 @@ def lm_optimizer(graph, values, options: BAOptions, history: list | None = None)
     return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
 
 
-def gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history: list,
-                       what: str) -> tuple[gtsam.Values, bool, int, bool]:  # fmt: skip
+@dataclass
+class SolverRun:
+    """What an optimiser run gave: the values (the input's where it failed), whether it ran
+    without a GTSAM error, its iterations, whether it stopped before ``max_iterations``, and why
+    it stopped (:func:`stop_reason`)."""
+
+    values: gtsam.Values
+    success: bool
+    iterations: int
+    converged: bool
+    stopped: str
+
+
+def stop_reason(history: list[tuple[float, float]], iterations: int, options: BAOptions, predicted: bool,
+                failure: str | None = None) -> str:
+    """Why an optimiser stopped, in words, from its iteration log: GTSAM's rules (maximum
+    iterations; the last decrease below the absolute or relative tolerance), the predicted
+    convergence of ``BAOptions.predictive_stop``, a GTSAM error (``failure``), or no iteration
+    lowering the cost (Levenberg-Marquardt's damping reached its bound)."""
+    if failure is not None:
+        return f"GTSAM error, input kept: {failure}"
+    if predicted:
+        return f"predicted decrease below relative tolerance {options.relative_tolerance:g}"
+    if iterations >= options.max_iterations:
+        return f"maximum iterations ({options.max_iterations})"
+    if not history:
+        return "no step lowered the cost"
+    before, after = history[-1]
+    if before - after <= options.absolute_tolerance:
+        return f"decrease below absolute tolerance {options.absolute_tolerance:g}"
+    if before - after <= options.relative_tolerance * before:
+        return f"relative decrease below tolerance {options.relative_tolerance:g}"
+    return "no step lowered the cost"
+
+
+def solve(graph, values: gtsam.Values, options: BAOptions, history: list, what: str) -> SolverRun:
+    """The optimiser ``options.optimizer`` names ("lm" or "gauss_newton_or_lm") on ``graph``
+    from ``values``; ``history`` receives each iteration's ``(cost before, cost after)``.
+    Call it inside :func:`captured_stdout`: GTSAM prints while it evaluates factors."""
+    if options.optimizer == "gauss_newton_or_lm":
+        return _gauss_newton_or_lm(graph, values, options, history, what)
+    if options.optimizer != "lm":
+        raise ValueError(f"unknown optimizer {options.optimizer!r}; use 'lm' or 'gauss_newton_or_lm'")
+    return _lm(graph, values, options, history, what, 0)
+
+
+def _lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: str, earlier: int) -> SolverRun:
+    """Levenberg-Marquardt from ``values``; ``earlier``: iterations already spent (by
+    Gauss-Newton) that count in the result.  A GTSAM error (e.g. an indeterminant system)
+    keeps the input values."""
+    optimizer = lm_optimizer(graph, values, options, history)
+    try:
+        result, predicted = _run(optimizer)
+    except RuntimeError as exc:
+        logger.warning("%s failed: %s", what, exc)
+        return SolverRun(values, False, earlier + optimizer.iterations(), False,
+                         stop_reason(history, optimizer.iterations(), options, False, str(exc)))
+    return SolverRun(result, True, earlier + optimizer.iterations(), optimizer.iterations() < options.max_iterations,
+                     stop_reason(history, optimizer.iterations(), options, predicted))
+
+
+def _gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: str) -> SolverRun:
     """Gauss-Newton while every step lowers the cost; otherwise (a step that raised it, or an
-    indeterminant system) Levenberg-Marquardt from ``values`` again.  ``(result, success,
-    iterations, converged)``: iterations of both, converged when the one that gave the result
-    stopped before ``options.max_iterations``.  From a good start (a local BA after PnP and
-    triangulation) Gauss-Newton takes the same steps as LM, whose damping and step control
-    then only cost time; LM remains for starts where the quadratic model misleads (a young
-    model's intrinsics)."""
+    indeterminant system) Levenberg-Marquardt from ``values`` again, its iterations counted
+    with Gauss-Newton's.  From a good start (a local BA after PnP and triangulation)
+    Gauss-Newton takes the same steps as LM, whose damping and step control then only cost
+    time; LM remains for starts where the quadratic model misleads (a young model's
+    intrinsics)."""
     trial: list[tuple[float, float]] = []
     params = _configure(gtsam.GaussNewtonParams(), graph, values, options, trial, "Gauss-Newton")
     optimizer = gtsam.GaussNewtonOptimizer(graph, values, params)
     try:
-        result = _run(optimizer, what)
+        result, predicted = _run(optimizer)
         if all(after <= before for before, after in trial):
             history.extend(trial)
-            return result, True, optimizer.iterations(), optimizer.iterations() < options.max_iterations
+            return SolverRun(result, True, optimizer.iterations(), optimizer.iterations() < options.max_iterations,
+                             stop_reason(trial, optimizer.iterations(), options, predicted))
         logger.debug("%s: a Gauss-Newton step raised the cost; Levenberg-Marquardt instead", what)
     except RuntimeError as exc:
         logger.debug("%s: Gauss-Newton failed (%s); Levenberg-Marquardt instead", what, exc)
-    lm = lm_optimizer(graph, values, options, history)
-    result, success = optimize_or_keep(lm, values, what)
-    return result, success, len(trial) + lm.iterations(), lm.iterations() < options.max_iterations
+    return _lm(graph, values, options, history, what, len(trial))
+
+
+@dataclass
+class SolverOutput:
+    """What GTSAM's C++ code printed on stdout inside :func:`captured_stdout`: the number of
+    lines and the first of them."""
+
+    lines: int = 0
+    first: str = ""
+
+
+_capturing: list[SolverOutput] = []  # the outermost capture active in this process, if any
 
 
 @contextlib.contextmanager
-def _quiet_stdout(what: str):
-    """Send what GTSAM's C++ code prints on stdout (GeneralSFMFactor prints a line per
-    ``CheiralityException`` while LM tries a step that puts a point behind a camera) to the
-    debug log instead of the caller's stdout, which may carry JSON."""
+def captured_stdout(what: str):
+    """Send what GTSAM's C++ code prints on stdout (``GeneralSFMFactor`` prints a line per
+    ``CheiralityException`` whenever it evaluates a point behind a camera: while LM tries a
+    step, and while a cost is computed) to a :class:`SolverOutput` and the debug log instead of
+    the terminal or the caller's stdout, which may carry JSON.  Nested captures add to the
+    outermost one."""
+    if _capturing:
+        yield _capturing[0]
+        return
+    output = SolverOutput()
+    _capturing.append(output)
     sys.stdout.flush()
     saved = os.dup(1)
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), 1)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 1)
-            os.close(saved)
-            sink.seek(0)
-            lines = sink.read().decode(errors="replace").splitlines()
-            if lines:
-                logger.debug("%s: GTSAM printed %d lines, e.g. %s", what, len(lines), lines[0])
-
-
-def optimize_or_keep(optimizer, values: gtsam.Values, what: str) -> tuple[gtsam.Values, bool]:
-    """Run the optimiser; on a GTSAM error (e.g. an indeterminant system) keep the input."""
     try:
-        return _run(optimizer, what), True
-    except RuntimeError as exc:
-        logger.warning("%s failed: %s", what, exc)
-        return values, False
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 1)
+            try:
+                yield output
+            finally:
+                os.dup2(saved, 1)
+                sink.seek(0)
+                lines = sink.read().decode(errors="replace").splitlines()
+                output.lines, output.first = len(lines), lines[0] if lines else ""
+                if lines:
+                    logger.debug("%s: GTSAM printed %d lines, e.g. %s", what, len(lines), lines[0])
+    finally:
+        os.close(saved)
+        _capturing.clear()

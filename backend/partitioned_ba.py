@@ -87,7 +87,7 @@ def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOpt
     param_sum = [np.zeros_like(np.asarray(p, float)) for p in camera_params]
     param_count = np.zeros(len(camera_params))
     points_out, iterations, success, converged, initial_sq = points.copy(), 0, True, True, 0.0
-    last_decrease = 0.0
+    last_decrease, initial_cost, final_cost, messages, stopped = 0.0, 0.0, 0.0, 0, []
     for k in range(num_parts):
         mask = part_of_point[obs_point] == k
         res = bundle_adjust(problem.observations(mask), options)
@@ -104,6 +104,9 @@ def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOpt
         iterations += res.iterations
         last_decrease = max(last_decrease, res.last_decrease)
         initial_sq += res.initial_rms**2 * res.num_observations
+        initial_cost, final_cost = initial_cost + res.initial_cost, final_cost + res.final_cost
+        messages += res.solver_messages
+        stopped.append(res.stopped)
         success, converged = success and res.success, converged and res.converged
         if logger.isEnabledFor(logging.DEBUG):
             logger.debug("BA part %d/%d: %d observations, RMS %.4f px, %d iterations, intrinsics %s", k + 1,
@@ -128,4 +131,13 @@ def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOpt
                     initial_rms=float(np.sqrt(initial_sq / len(obs_image))), final_rms=float(np.sqrt(sq_sum / len(obs_image))),
                     final_mean_error=err_sum / len(obs_image), iterations=iterations, time_s=time.perf_counter() - start,
                     num_observations=len(obs_image), success=success, converged=converged,
-                    last_decrease=last_decrease)
+                    last_decrease=last_decrease, initial_cost=initial_cost, final_cost=final_cost,
+                    stopped=_stop_reasons(stopped), solver_messages=messages)
+
+
+def _stop_reasons(reasons: list[str]) -> str:
+    """The parts' stop reasons in one line: each distinct one, with how many parts it stopped."""
+    distinct = list(dict.fromkeys(reasons))
+    if len(distinct) == 1:
+        return f"{distinct[0]} (each of {len(reasons)} parts)"
+    return "; ".join(f"{r} ({reasons.count(r)} of {len(reasons)} parts)" for r in distinct)

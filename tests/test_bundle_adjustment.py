@@ -385,3 +385,38 @@ def test_the_calibration_steps_covariance_is_the_optimums_also_from_a_state_shor
     np.testing.assert_allclose(std_short, std_opt, rtol=0.02)
     start = ds2_from_params("SIMPLE_RADIAL", held.camera_params[0])
     np.testing.assert_allclose((start + step_short)[[3, 4]], (start + step_opt)[[3, 4]], atol=std_opt.max())
+
+
+def test_the_result_says_why_the_optimiser_stopped_and_what_the_cost_did():
+    truth = ring_scene(noise=0.5, seed=5)
+    start = BAProblem(**perturb(truth))
+    options = replace(EXACT, refine_intrinsics="focal")
+    done = bundle_adjust(start, options=replace(options, relative_tolerance=1e-3))
+    assert done.stopped == "relative decrease below tolerance 0.001"
+    # GTSAM's cost is half the sum of squared whitened errors (EXACT: no robust loss, 1 px sigma)
+    assert done.initial_cost == pytest.approx(0.5 * done.num_observations * done.initial_rms**2, rel=1e-6)
+    assert done.final_cost == pytest.approx(0.5 * done.num_observations * done.final_rms**2, rel=1e-6)
+    one = bundle_adjust(start, options=replace(options, max_iterations=1))
+    assert one.stopped == "maximum iterations (1)"
+    predicted = bundle_adjust(start, options=replace(options, predictive_stop=True, optimizer="gauss_newton_or_lm"))
+    assert predicted.stopped.startswith("predicted decrease below relative tolerance")
+    assert predicted.solver_messages == 0 == done.solver_messages
+
+
+def test_gtsam_messages_stay_off_the_terminal_and_are_counted(capfd):
+    """A point behind a camera makes GTSAM's GeneralSFMFactor print a CheiralityException line
+    each time the cost is evaluated; the BA counts them and the terminal sees none."""
+    scene = ring_scene(n_images=4, n_points=40)
+    scene["points"][3] = 2.0 * centres(scene["rotations"], scene["translations"])[0]  # behind camera 0
+    capfd.readouterr()
+    result = bundle_adjust(BAProblem(**scene), options=replace(EXACT, refine_intrinsics="focal", max_iterations=3))
+    out, err = capfd.readouterr()
+    assert out == "" and "Cheirality" not in err
+    assert result.solver_messages >= 2  # at least the costs before and after
+
+
+def test_stop_reasons_of_a_partitioned_ba_are_pooled():
+    from backend.partitioned_ba import _stop_reasons
+
+    assert _stop_reasons(["maximum iterations (5)"] * 3) == "maximum iterations (5) (each of 3 parts)"
+    assert _stop_reasons(["a", "b", "a"]) == "a (2 of 3 parts); b (1 of 3 parts)"

@@ -87,6 +87,13 @@ def test_one_schema_for_one_cluster_and_several(one_cluster, clusters):
         assert report["pairs_tried"] >= report["pairs_verified"] > 0 and report["median_inliers"] > 0
         assert report["registered"] == report["models"][0]["registered"] and report["accuracy"] is None
         assert report["executor"] == "local" and report["scheduler"] is None
+        ba = report["models"][0]["final_ba"]  # the last final BA: the local model's, or the merged one's
+        assert ba["images"] == report["registered"] and ba["parts"] == 1 and ba["iterations"] >= 1
+        assert ba["cost_after"] <= ba["cost_before"] and ba["rms_after_px"] <= ba["rms_before_px"]
+        assert ba["stopped"].startswith(("relative decrease below tolerance", "decrease below absolute"))
+        assert ba["observations"] >= 3 * report["points"] * 0.5 and ba["time_s"] > 0
+        log_text = (ws / "log.txt").read_text()
+        assert re.search(r"final BA over \d+ images and \d+ observations: cost \S+ -> \S+, RMS", log_text)
     assert one["files"]["clusters"] == str(one_cluster.resolve() / "clusters.json") and one["files"]["merge"] is None
     assert several["files"]["merge"] == str(clusters[0].resolve() / "merge.json")
     assert several["registered"] == 40 and several["unregistered"] == [] and several["workers"] == 2

@@ -108,6 +108,9 @@ class Reconstruction:
     images: dict[int, Image] = field(default_factory=dict)
     points3D: dict[int, Point3D] = field(default_factory=dict)  # noqa: N815
     _next_point_id: int = 1
+    # What the last final BA that refined the model did (sfm.mapper.bundle_adjuster's
+    # final_ba_summary); None for a model read from files.
+    final_ba: dict | None = field(default=None, compare=False)
 
     # ------------------------------------------------------------------ building
     def add_camera(self, camera: Camera) -> None:
@@ -290,4 +293,5 @@ class Reconstruction:
             "observations": self.num_observations,
             "mean_track_length": round(self.mean_track_length, 4),
             "mean_reprojection_error": round(self.mean_reprojection_error(), 4),
+            "final_ba": self.final_ba,
         }

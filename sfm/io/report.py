@@ -53,7 +53,9 @@ SCHEMA: dict[str, tuple[tuple[type, ...], str]] = {
     "merge_components": ((int,), "merge components (parts of the cluster graph), 0 when not merged"),
     "num_models": ((int,), "final models in sparse/"),
     "models": ((list,), "final models, largest first: path, cameras, images, registered, points, "
-                        "observations, mean_track_length, mean_reprojection_error (px)"),
+                        "observations, mean_track_length, mean_reprojection_error (px), final_ba (its last "
+                        "final bundle adjustment: images, observations, parts, iterations, cost_before, "
+                        "cost_after, rms_before_px, rms_after_px, stopped (why), solver_messages, time_s)"),
     "registered": ((int,), "images registered in the largest model (sparse/0)"),
     "points": ((int,), "3D points of the largest model"),
     "mean_track_length": (_OPT_NUM, "mean observations per point of the largest model"),

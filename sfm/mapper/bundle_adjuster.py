@@ -42,7 +42,7 @@ import logging
 
 import numpy as np
 
-from backend.ba_problem import BAOptions, BAProblem
+from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.partitioned_ba import bundle_adjust_partitioned, observations_in_memory
 from backend.track_subset import select_tracks
 from sfm.core import progress
@@ -66,13 +66,15 @@ class BundleAdjuster:
 
     ``last_rms`` and ``last_decrease`` describe the last BA: its final RMS reprojection error in
     pixels and the relative cost decrease of its last iteration (how far from the optimum a
-    loose tolerance stopped it)."""
+    loose tolerance stopped it); ``final_bas`` what each final BA did
+    (:func:`final_ba_summary`)."""
 
     def __init__(self, state: MapperState) -> None:
         self.state = state
         self.opts = state.opts
         self.last_rms = float("nan")
         self.last_decrease = 0.0
+        self.final_bas: list[dict] = []  # final_ba_summary of each final BA, in order
         self.calibration = SelfCalibration(self)  # what the final BAs refine of each camera under "auto"
 
     # ------------------------------------------------------------------ the three kinds
@@ -115,8 +117,11 @@ class BundleAdjuster:
             if refine == "auto":
                 refine = (self.calibration.final_levels(free, posing, loss_scale) if decide
                           else self.calibration.decided_levels(free))
-            self._adjust(free, posing, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
-                         on_iteration=_report_final_ba(len(free)))
+            result = self._adjust(free, posing, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
+                                  on_iteration=_report_final_ba(len(free)))
+            if result is not None:
+                self.final_bas.append(final_ba_summary(result, len(free), parts))
+                log.info("%s: final BA %s", s.payload.label, describe_final_ba(self.final_bas[-1]))
             if parts > 1:
                 self.refine_points(posing)
             if len(posing) < len(tracks):
@@ -314,14 +319,15 @@ class BundleAdjuster:
 
     def _adjust(self, free: np.ndarray, tracks: np.ndarray, refine: str | list[str], max_iterations: int,
                 tolerance: float = 1e-5, parts: int = 1, optimizer: str = "lm",
-                predictive: bool = False, loss_scale: float | None = None, on_iteration=None) -> None:
+                predictive: bool = False, loss_scale: float | None = None, on_iteration=None) -> BAResult | None:
         """BA of ``tracks`` with the images ``free`` free and the others that see them held;
         ``refine``: one level for every camera, or one per camera of the state;
-        ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one)."""
+        ``loss_scale``: of the robust loss (None: ``opts.loss_scale``, the local BAs' one).
+        The BA's result (None: no observations)."""
         s = self.state
         problem, order, n_free, cams = self.problem(free, tracks)
         if problem is None:
-            return
+            return None
         levels = [refine] * len(s.priors) if isinstance(refine, str) else list(refine)
         levels = ["none" if prior.fixed else level for prior, level in zip(s.priors, levels)]  # given intrinsics
         group_levels = tuple(levels[c] for c in cams)
@@ -335,6 +341,28 @@ class BundleAdjuster:
                            result.points, cams if refined else None, result.camera_params)
         self.last_rms = float(result.final_rms)
         self.last_decrease = float(result.last_decrease)
+        return result
+
+
+def final_ba_summary(result: BAResult, num_images: int, parts: int) -> dict:
+    """What a final BA did, for the log and ``report.json`` (each model's ``final_ba``): its
+    size, its cost and RMS reprojection error before and after, its iterations, why it stopped
+    and the lines GTSAM printed (kept off the terminal)."""
+    return {"images": num_images, "observations": int(result.num_observations), "parts": parts,
+            "iterations": int(result.iterations), "cost_before": float(result.initial_cost),
+            "cost_after": float(result.final_cost), "rms_before_px": round(float(result.initial_rms), 4),
+            "rms_after_px": round(float(result.final_rms), 4), "stopped": result.stopped,
+            "solver_messages": int(result.solver_messages), "time_s": round(float(result.time_s), 2)}
+
+
+def describe_final_ba(summary: dict) -> str:
+    """One line of :func:`final_ba_summary`."""
+    parts = f" in {summary['parts']} parts" if summary["parts"] > 1 else ""
+    printed = f"; GTSAM printed {summary['solver_messages']} lines (debug log)" if summary["solver_messages"] else ""
+    return (f"over {summary['images']} images and {summary['observations']} observations{parts}: cost "
+            f"{summary['cost_before']:.6g} -> {summary['cost_after']:.6g}, RMS {summary['rms_before_px']:.3f} -> "
+            f"{summary['rms_after_px']:.3f} px, {summary['iterations']} iterations, {summary['time_s']:.1f} s; "
+            f"stopped: {summary['stopped']}{printed}")
 
 
 def _report_final_ba(num_images: int):

@@ -109,6 +109,8 @@ def reconstruct_incremental(payload: MapperInput, opts: MapperOptions, growth: G
             closed -= joined.size
             grow_and_refine(state, adjuster, growth, report)
         model = to_reconstruction(state)
+        model.final_ba = adjuster.final_bas[-1] if adjuster.final_bas else None
+        adjuster.final_bas.clear()  # the next model's own
         n = state.num_registered
         closed += n
         if growth is not None:

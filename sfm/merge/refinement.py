@@ -74,7 +74,9 @@ def refine_with_poses(payload: MapperInput, opts: MapperOptions, poses: dict[str
     register_left_out(state, adjuster, opts.loss_scale)
     if calibration is not None:
         calibration.extend(adjuster.calibration.report())
-    return to_reconstruction(state)
+    model = to_reconstruction(state)
+    model.final_ba = adjuster.final_bas[-1] if adjuster.final_bas else None
+    return model
 
 
 def refine_merged(state: MapperState, adjuster: BundleAdjuster, loss_scale: float) -> None:

@@ -253,13 +253,18 @@ def final_text(models: list[dict], num_images: int, errors: np.ndarray, max_erro
     others = (f" and {len(models) - 1} smaller model(s) ({', '.join(str(m['registered']) for m in models[1:])} images)"
               if len(models) > 1 else "")
     pct = np.percentile(errors, [50, 90]) if len(errors) else [float("nan")] * 2
+    ba = first.get("final_ba")
+    ba_text = (f"""Its last bundle adjustment: {ba['observations']} observations{f" in {ba['parts']} parts" if ba['parts'] > 1 else ""},
+RMS reprojection error {ba['rms_before_px']:.3f} -> {ba['rms_after_px']:.3f} px in {ba['iterations']} iterations
+of Levenberg-Marquardt, stopped because: {ba['stopped']}.
+""" if ba else "")
     return f"""## 7. The final model
 
 **This run.** {first.get('registered', 0)} of {num_images} images registered in the largest model{others},
 {first.get('points', 0)} points, mean reprojection error {first.get('mean_reprojection_error', float('nan')):.3f} px
 (per point: median {pct[0]:.2f} px, 90th percentile {pct[1]:.2f} px). Written to `sparse/0` in
 COLMAP's format; each point's colour is the mean colour of the keypoints that observe it.
-
+{ba_text}
 **In the recording.** `world/points`: the points in their colours; `world/points_error`: the same
 points coloured by their mean reprojection error, blue 0 px to red {max_error:g} px (the mapper's
 bound); `world/cams/<name>`: each camera's frustum with its image. Drag the `stage` timeline back
