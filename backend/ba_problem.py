@@ -90,12 +90,15 @@ class BAOptions:
         default: robust losses converge linearly in the tail, where a tighter tolerance costs
         many iterations for a change far below the observations' noise).
     ordering: "auto" (default: "points_first" up to ``backend.gtsam_solver.AUTO_METIS_OBSERVATIONS`` observations,
-        "metis" above), "points_first" (every point, then calibrations and poses, the Schur
-        ordering of BA: no graph partitioning to compute, which pays on small problems),
-        "metis" or "colamd".  Points first keeps, for every point, a dense Hessian block over
-        all cameras that see it until the cameras are eliminated, so its memory grows with
-        the observations times the cameras per point; METIS's nested dissection keeps the fill
-        of large problems far smaller.
+        "points_then_metis" above), "points_first" (every point, then calibrations and poses, the
+        Schur ordering of BA: nothing to compute, which pays on small problems),
+        "points_then_metis" (every point, then the poses in METIS's nested-dissection order of
+        their co-visibility graph, the reduced camera system's structure, then calibrations),
+        "metis" or "colamd" (GTSAM's, on the whole graph).  The points come first either way;
+        the cameras' order decides the fill of the reduced camera system: in key order, a large
+        block's holds dense blocks over all the cameras between two that share points, several
+        times the memory and time of METIS's; METIS on the whole graph reaches the same fill
+        but takes seconds to compute on a large BA, on the cameras' graph a fraction of one.
     optimizer: "lm" (Levenberg-Marquardt, default) or "gauss_newton_or_lm" (Gauss-Newton while
         every step lowers the cost, else LM from the start: from a good start Gauss-Newton
         takes LM's steps without its damping and step control,

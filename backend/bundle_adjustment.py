@@ -38,11 +38,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
+from scipy import sparse
 from gtsam.symbol_shorthand import K, L, X
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.camera_models import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2
-from backend.gtsam_solver import AUTO_METIS_OBSERVATIONS, captured_stdout, robust_noise, solve
+from backend.gtsam_solver import captured_stdout, elimination_ordering, resolve_ordering, robust_noise, solve
 
 logger = logging.getLogger(__name__)
 Array = np.ndarray
@@ -237,6 +238,24 @@ class _Graph:
     observed: Array
     seen_points: Array
     cameras: tuple
+    pose_variables: Array  # images whose pose is a variable
+
+
+def _camera_pairs(problem: BAProblem, built: _Graph, num_factors: int, options: BAOptions) -> Array | None:
+    """The pose keys of every two free images that see a common point, where the ordering
+    needs them (``backend.gtsam_solver.elimination_ordering``); else None."""
+    if resolve_ordering(options.ordering, num_factors) != "points_then_metis":
+        return None
+    obs_image, obs_point = np.asarray(problem.obs_image, np.int64), np.asarray(problem.obs_point, np.int64)
+    variable = np.zeros(len(problem.rotations), dtype=bool)
+    variable[built.pose_variables] = True
+    rows = variable[obs_image]
+    seen = sparse.csr_matrix((np.ones(int(rows.sum()), np.float32), (obs_point[rows], obs_image[rows])),
+                             shape=(len(problem.points), len(problem.rotations)))
+    covisible = sparse.triu(seen.T @ seen, k=1).tocoo()
+    if not covisible.nnz:
+        return None
+    return np.uint64(X(0)) + np.stack([covisible.row, covisible.col], axis=1).astype(np.uint64)  # X(i) = X(0) + i
 
 
 def _build(problem: BAProblem, options: BAOptions) -> _Graph:
@@ -270,7 +289,8 @@ def _build(problem: BAProblem, options: BAOptions) -> _Graph:
     _add_projection_factors(graph, values, cameras, obs, groups, noise, levels, constant)
     if not constant:
         _add_gauge(graph, values, poses, observed, options, held)
-    return _Graph(graph, values, levels, refined, observed, seen_points, cameras)
+    pose_variables = np.array([i for i in observed.tolist() if i not in constant], np.int64)
+    return _Graph(graph, values, levels, refined, observed, seen_points, cameras, pose_variables)
 
 
 def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BAResult:
@@ -287,7 +307,7 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
         built_s = time.perf_counter() - start
         logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
         history: list[tuple[float, float]] = []
-        run = solve(graph, values, options, history, "bundle adjustment")
+        run = solve(graph, values, options, history, "bundle adjustment", _camera_pairs(problem, built, graph.size(), options))
         initial_cost, final_cost = graph.error(values), graph.error(run.values)
     result, levels, refined = run.values, built.levels, built.refined
     observed, seen_points, cameras = built.observed, built.seen_points, built.cameras
@@ -358,11 +378,11 @@ def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array
     try:
         with captured_stdout("calibration step"):
             linear = graph.linearize(values)
-        if graph.size() > AUTO_METIS_OBSERVATIONS:  # the BA's own choice (backend.gtsam_solver)
-            metis = gtsam.Ordering.MetisNonlinearFactorGraph(graph)
-            order = [k for k in (metis.at(i) for i in range(metis.size())) if k not in last]
-        else:  # points, then poses: the reduced camera system
-            order = sorted(others, key=lambda k: gtsam.Symbol(k).chr() != ord("l"))
+        # the BA's own ordering (backend.gtsam_solver), the calibrations last and kept
+        name = options.ordering if options.ordering not in ("metis", "colamd") else "points_then_metis"
+        ordering = elimination_ordering(name, graph, values, _camera_pairs(problem, built, graph.size(),
+                                                                          replace(options, ordering=name)), tuple(keys))
+        order = [ordering.at(i) for i in range(ordering.size() - len(keys))]
         _, rest = linear.eliminatePartialMultifrontal(gtsam.Ordering(order))
         information, eta = rest.hessian(gtsam.Ordering(keys))
     except RuntimeError as exc:

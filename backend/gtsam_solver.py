@@ -2,8 +2,10 @@
 
 The solver plumbing shared by bundle adjustment and pose refinement: the robust measurement
 noise (Huber, Cauchy or none on an isotropic 1 px sigma), the optimiser with its elimination
-ordering ("points_first": every point eliminated first, the Schur ordering of BA; GTSAM's
-METIS / COLAMD; "auto": points first for small problems, METIS for large ones), stopping rules,
+ordering ("points_first": every point eliminated first, the Schur ordering of BA;
+"points_then_metis": the same with the cameras in METIS's order of their co-visibility graph;
+GTSAM's METIS / COLAMD; "auto": the first for small problems, the second for large ones),
+stopping rules,
 an iteration log and why the optimiser stopped; a GTSAM error (e.g. an indeterminant system)
 turned into "keep the input values"; and what GTSAM's C++ code prints on stdout counted and
 sent to the debug log, never to the terminal (:func:`captured_stdout`).  The options are those
@@ -43,29 +45,61 @@ def robust_noise(loss: str, scale: float, sigma: float = 1.0) -> gtsam.noiseMode
     return gtsam.noiseModel.Robust.Create(estimators[loss].Create(scale), base)
 
 
-# Above this many factors "auto" orders by METIS: points first would hold a dense Hessian
-# block per point over all its cameras, whose memory grows faster than METIS's fill.
+# Above this many factors "auto" orders "points_then_metis", below it "points_first": ordering
+# the cameras costs more than it saves on a local BA's few cameras.
 AUTO_METIS_OBSERVATIONS = 100_000
+ORDERINGS = ("auto", "points_first", "points_then_metis", "metis", "colamd")
 
 
-def _configure(params, graph, values, options: BAOptions, history: list | None, name: str):
-    """The options' ordering, tolerances and an iteration log (``history``, a list, receives
-    each iteration's ``(cost before, cost after)``) on GTSAM optimiser ``params``."""
-    if options.ordering not in ("auto", "points_first", "metis", "colamd"):
-        raise ValueError(
-            f"unknown ordering {options.ordering!r}; use 'auto', 'points_first', 'metis' or 'colamd'"
-        )
-    ordering_name = options.ordering
-    if ordering_name == "auto":
-        ordering_name = "metis" if graph.size() > AUTO_METIS_OBSERVATIONS else "points_first"
-    if ordering_name == "points_first":
-        # The classic BA ordering: eliminating every point first leaves the reduced camera
-        # system (a Schur complement); no graph partitioning to compute.
-        keys = np.array(values.keys(), dtype=np.uint64)
-        is_point = (keys >> np.uint64(56)) == ord("l")  # a Symbol's character is its top byte
-        params.setOrdering(gtsam.Ordering(np.concatenate([keys[is_point], keys[~is_point]]).tolist()))
+def _is_point(keys: np.ndarray) -> np.ndarray:
+    return (keys >> np.uint64(56)) == ord("l")  # a Symbol's character is its top byte
+
+
+def resolve_ordering(name: str, num_factors: int) -> str:
+    """The ordering ``name`` stands for on a graph of ``num_factors`` factors ("auto" resolved)."""
+    if name not in ORDERINGS:
+        raise ValueError(f"unknown ordering {name!r}; use one of {', '.join(ORDERINGS)}")
+    if name == "auto":
+        return "points_then_metis" if num_factors > AUTO_METIS_OBSERVATIONS else "points_first"
+    return name
+
+
+def elimination_ordering(name: str, graph, values: gtsam.Values, camera_pairs: np.ndarray | None = None,
+                         last: tuple[int, ...] = ()) -> gtsam.Ordering | None:
+    """The elimination ordering ``name`` (:class:`backend.ba_problem.BAOptions`) of ``graph``
+    as a GTSAM ``Ordering`` with ``last`` (keys) at its end; None for GTSAM's own "metis" and
+    "colamd" (which do not take ``last``).  "points_then_metis" needs ``camera_pairs`` (E, 2):
+    the keys of every two pose variables that see a common point, the structure of the reduced
+    camera system (Schur complement); the poses are ordered by METIS's nested dissection of that
+    graph, the other non-point variables (calibrations) after them."""
+    name = resolve_ordering(name, graph.size())
+    if name in ("metis", "colamd"):
+        return None
+    keys = np.array(values.keys(), dtype=np.uint64)
+    point = _is_point(keys)
+    at_end = set(last)
+    rest = [k for k in keys[~point].tolist() if k not in at_end]
+    if name == "points_then_metis" and camera_pairs is not None and len(camera_pairs):
+        structure = gtsam.SymbolicFactorGraph()
+        for a, b in np.asarray(camera_pairs, np.uint64).tolist():
+            structure.push_factor(a, b)
+        metis = gtsam.Ordering.MetisSymbolicFactorGraph(structure)
+        poses = [k for k in (metis.at(i) for i in range(metis.size())) if k not in at_end]
+        placed = set(poses)
+        rest = poses + [k for k in rest if k not in placed]
+    return gtsam.Ordering(keys[point].tolist() + rest + list(last))
+
+
+def _configure(params, graph, values, options: BAOptions, history: list | None, name: str,
+               camera_pairs: np.ndarray | None = None):
+    """The options' ordering (:func:`elimination_ordering`), tolerances and an iteration log
+    (``history``, a list, receives each iteration's ``(cost before, cost after)``) on GTSAM
+    optimiser ``params``."""
+    ordering = elimination_ordering(options.ordering, graph, values, camera_pairs)
+    if ordering is None:
+        params.setOrderingType(resolve_ordering(options.ordering, graph.size()).upper())
     else:
-        params.setOrderingType(ordering_name.upper())
+        params.setOrdering(ordering)
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(options.relative_tolerance)
     params.setAbsoluteErrorTol(options.absolute_tolerance)
@@ -111,10 +145,11 @@ def _run(optimizer) -> tuple[gtsam.Values, bool]:
         return optimizer.values(), True
 
 
-def lm_optimizer(graph, values, options: BAOptions, history: list | None = None) -> gtsam.LevenbergMarquardtOptimizer:
+def lm_optimizer(graph, values, options: BAOptions, history: list | None = None,
+                 camera_pairs: np.ndarray | None = None) -> gtsam.LevenbergMarquardtOptimizer:
     """Levenberg-Marquardt with the options' ordering, tolerances and an iteration log;
     ``history`` (a list) receives each iteration's ``(cost before, cost after)``."""
-    params = _configure(gtsam.LevenbergMarquardtParams(), graph, values, options, history, "LM")
+    params = _configure(gtsam.LevenbergMarquardtParams(), graph, values, options, history, "LM", camera_pairs)
     return gtsam.LevenbergMarquardtOptimizer(graph, values, params)
 
 
@@ -153,22 +188,25 @@ def stop_reason(history: list[tuple[float, float]], iterations: int, options: BA
     return "no step lowered the cost"
 
 
-def solve(graph, values: gtsam.Values, options: BAOptions, history: list, what: str) -> SolverRun:
+def solve(graph, values: gtsam.Values, options: BAOptions, history: list, what: str,
+          camera_pairs: np.ndarray | None = None) -> SolverRun:
     """The optimiser ``options.optimizer`` names ("lm" or "gauss_newton_or_lm") on ``graph``
-    from ``values``; ``history`` receives each iteration's ``(cost before, cost after)``.
-    Call it inside :func:`captured_stdout`: GTSAM prints while it evaluates factors."""
+    from ``values``; ``history`` receives each iteration's ``(cost before, cost after)``;
+    ``camera_pairs``: see :func:`elimination_ordering`.  Call it inside
+    :func:`captured_stdout`: GTSAM prints while it evaluates factors."""
     if options.optimizer == "gauss_newton_or_lm":
-        return _gauss_newton_or_lm(graph, values, options, history, what)
+        return _gauss_newton_or_lm(graph, values, options, history, what, camera_pairs)
     if options.optimizer != "lm":
         raise ValueError(f"unknown optimizer {options.optimizer!r}; use 'lm' or 'gauss_newton_or_lm'")
-    return _lm(graph, values, options, history, what, 0)
+    return _lm(graph, values, options, history, what, 0, camera_pairs)
 
 
-def _lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: str, earlier: int) -> SolverRun:
+def _lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: str, earlier: int,
+        camera_pairs: np.ndarray | None = None) -> SolverRun:
     """Levenberg-Marquardt from ``values``; ``earlier``: iterations already spent (by
     Gauss-Newton) that count in the result.  A GTSAM error (e.g. an indeterminant system)
     keeps the input values."""
-    optimizer = lm_optimizer(graph, values, options, history)
+    optimizer = lm_optimizer(graph, values, options, history, camera_pairs)
     try:
         result, predicted = _run(optimizer)
     except RuntimeError as exc:
@@ -179,7 +217,8 @@ def _lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: st
                      stop_reason(history, optimizer.iterations(), options, predicted))
 
 
-def _gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: str) -> SolverRun:
+def _gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history: list, what: str,
+                        camera_pairs: np.ndarray | None = None) -> SolverRun:
     """Gauss-Newton while every step lowers the cost; otherwise (a step that raised it, or an
     indeterminant system) Levenberg-Marquardt from ``values`` again, its iterations counted
     with Gauss-Newton's.  From a good start (a local BA after PnP and triangulation)
@@ -187,7 +226,7 @@ def _gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history
     time; LM remains for starts where the quadratic model misleads (a young model's
     intrinsics)."""
     trial: list[tuple[float, float]] = []
-    params = _configure(gtsam.GaussNewtonParams(), graph, values, options, trial, "Gauss-Newton")
+    params = _configure(gtsam.GaussNewtonParams(), graph, values, options, trial, "Gauss-Newton", camera_pairs)
     optimizer = gtsam.GaussNewtonOptimizer(graph, values, params)
     try:
         result, predicted = _run(optimizer)
@@ -198,7 +237,7 @@ def _gauss_newton_or_lm(graph, values: gtsam.Values, options: BAOptions, history
         logger.debug("%s: a Gauss-Newton step raised the cost; Levenberg-Marquardt instead", what)
     except RuntimeError as exc:
         logger.debug("%s: Gauss-Newton failed (%s); Levenberg-Marquardt instead", what, exc)
-    return _lm(graph, values, options, history, what, len(trial))
+    return _lm(graph, values, options, history, what, len(trial), camera_pairs)
 
 
 @dataclass

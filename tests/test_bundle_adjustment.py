@@ -96,7 +96,7 @@ def test_pose_conversions_round_trip_and_agree_with_gtsam_projection():
     )
 
 
-@pytest.mark.parametrize("ordering", ["auto", "points_first", "metis", "colamd"])
+@pytest.mark.parametrize("ordering", ["auto", "points_first", "points_then_metis", "metis", "colamd"])
 def test_exact_observations_recover_the_truth(ordering):
     truth = ring_scene()
     start = perturb(truth, rot_deg=2.0, trans_frac=0.05)
@@ -420,3 +420,21 @@ def test_stop_reasons_of_a_partitioned_ba_are_pooled():
 
     assert _stop_reasons(["maximum iterations (5)"] * 3) == "maximum iterations (5) (each of 3 parts)"
     assert _stop_reasons(["a", "b", "a"]) == "a (2 of 3 parts); b (1 of 3 parts)"
+
+
+def test_points_then_metis_orders_points_then_poses_then_calibrations():
+    from backend.bundle_adjustment import _build, _camera_pairs
+    from backend.gtsam_solver import elimination_ordering
+    from gtsam.symbol_shorthand import K, L, X
+
+    scene = ring_scene(n_images=6, n_points=30)
+    problem, options = BAProblem(**scene), BAOptions(refine_intrinsics="focal", ordering="points_then_metis")
+    built = _build(problem, options)
+    pairs = _camera_pairs(problem, built, built.graph.size(), options)
+    assert len(pairs) == 15 and set(pairs.ravel().tolist()) == {X(i) for i in range(6)}  # every point seen by all
+    order = elimination_ordering("points_then_metis", built.graph, built.values, pairs)
+    keys = [order.at(i) for i in range(order.size())]
+    assert set(keys[:30]) == {L(j) for j in range(30)} and set(keys[30:36]) == {X(i) for i in range(6)}
+    assert keys[36:] == [K(0)]
+    last = elimination_ordering("points_then_metis", built.graph, built.values, pairs, last=(X(2),))
+    assert last.at(last.size() - 1) == X(2) and last.size() == 37

@@ -98,14 +98,16 @@ class BundleAdjuster:
         s.filter_observations(tracks)
 
     def global_(self, final: bool = False, tolerance: float = FINAL_TOLERANCE,
-                loss_scale: float | None = None, decide: bool = True) -> None:
+                loss_scale: float | None = None, decide: bool = True, only_if_changed: bool = False) -> bool:
         """BA of every registered image: on a track subset while the model grows, on every
         track when ``final`` (LM stopping at ``tolerance``), with the robust loss at
         ``loss_scale`` pixels (None: ``opts.global_loss_scale``, see ``MapperOptions``).
         Under ``intrinsics_refinement="auto"`` a final BA's self-calibration tests decide what
         it refines of each camera; ``decide=False`` skips them and refines what earlier tests
-        decided (``SelfCalibration.decided_levels``).
-        Then COLMAP's filtering: degenerate cameras, observations, points."""
+        decided (``SelfCalibration.decided_levels``); ``only_if_changed``: no BA when the tests
+        decide what was decided before and move no camera parameter (the model, at an earlier
+        final BA's optimum, is at this one's too).
+        Then COLMAP's filtering: degenerate cameras, observations, points.  Whether a BA ran."""
         s = self.state
         loss_scale = self._global_loss_scale() if loss_scale is None else loss_scale
         free = np.flatnonzero(s.registered)
@@ -114,9 +116,15 @@ class BundleAdjuster:
             posing = self.posing_tracks(tracks)
             parts = self._num_parts(posing)
             refine = self.opts.intrinsics_refinement
-            if refine == "auto":
-                refine = (self.calibration.final_levels(free, posing, loss_scale) if decide
-                          else self.calibration.decided_levels(free))
+            if refine == "auto" and decide:
+                before = (self.calibration.decided_levels(free), [p.copy() for p in s.params])
+                refine = self.calibration.final_levels(free, posing, loss_scale)
+                if only_if_changed and refine == before[0] and all(map(np.array_equal, before[1], s.params)):
+                    log.info("%s: the self-calibration tests keep every camera as the last final BA left it: "
+                             "no further final BA", s.payload.label)
+                    return False
+            elif refine == "auto":
+                refine = self.calibration.decided_levels(free)
             result = self._adjust(free, posing, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
                                   on_iteration=_report_final_ba(len(free)))
             if result is not None:
@@ -134,6 +142,7 @@ class BundleAdjuster:
                 self.refine_points(np.setdiff1d(tracks, subset))
         s.drop_degenerate_cameras()
         s.filter_observations(tracks)
+        return True
 
     def posing_tracks(self, tracks: np.ndarray) -> np.ndarray:
         """The tracks a final BA adjusts the poses with: those seen by at least

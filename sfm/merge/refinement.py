@@ -88,10 +88,18 @@ def refine_merged(state: MapperState, adjuster: BundleAdjuster, loss_scale: floa
     current state (``backend.bundle_adjustment.calibration_step``), which the first
     alternation brings to a BA's optimum: from the merged poses a few pixels off, the
     principal point's covariance comes out several times too wide and a shift the photos
-    show is held."""
-    alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=loss_scale, decide=False))
+    show is held.  When the first alternation converged and the tests keep every camera as it
+    was, the model is already at the second alternation's optimum, which then runs no BA."""
+    converged = alternate_until_converged(
+        state, lambda: adjuster.global_(final=True, loss_scale=loss_scale, decide=False)) < MAX_REFINEMENTS
     adjuster.calibration.retest()
-    alternate_until_converged(state, lambda: adjuster.global_(final=True, loss_scale=loss_scale))
+    first = [converged]  # only the first BA may be skipped: later ones follow a re-triangulation
+
+    def adjust() -> bool:
+        skippable, first[0] = first[0], False
+        return adjuster.global_(final=True, loss_scale=loss_scale, only_if_changed=skippable)
+
+    alternate_until_converged(state, adjust)
 
 
 def alternate_until_converged(state: MapperState, adjust) -> int:
@@ -101,7 +109,8 @@ def alternate_until_converged(state: MapperState, adjust) -> int:
     (paper section 3: re-triangulation and BA "executed alternatively until convergence").
     Returns the number of BAs."""
     for rounds in range(1, MAX_REFINEMENTS + 1):
-        adjust()
+        if adjust() is False:  # nothing to adjust: converged
+            return rounds - 1
         before = int(state.obs_inlier.sum())
         state.retriangulate()
         changed = int(state.obs_inlier.sum()) - before
