@@ -42,13 +42,16 @@ def test_report_table_ratio_and_skipped_peers(tmp_path):
     results = {
         (500, "graphsfm-2"): {"images": 500, "method": "graphsfm-2", "time_s": 50.0, "registered": 500},
         (500, "colmap-incremental"): {"images": 500, "method": "colmap-incremental", "time_s": 200.0},
+        (500, "colmap-global"): {"images": 500, "method": "colmap-global", "time_s": 80.0},
         (1000, "graphsfm-2"): {"images": 1000, "method": "graphsfm-2", "time_s": 100.0, "registered": 1000},
     }
     text = report(tmp_path, [500, 1000], results, skip_peers_above=500)
-    assert "| 500 | graphsfm-2 | 50.0 |" in text and text.count("| 0.25 |") == 1
+    assert "| 500 | graphsfm-2 | 50.0 |" in text and text.count("| 0.25 | 0.62 |") == 1  # to incremental, to global
+    assert text.count("| 0.40 | 1.00 |") == 1  # colmap-global's own row
+    assert "| 1000 | colmap-hierarchical | skipped (peers above 500 images) |" in text
     assert "| 1000 | colmap-incremental | skipped (peers above 500 images) |" in text
     assert "| 500 | graphsfm-1 | not run |" in text
-    assert "- graphsfm-2: 1.00" in text and "- colmap-global: too few sizes" in text
+    assert "- graphsfm-2: 1.00" in text and "- colmap-hierarchical: too few sizes" in text
     assert np.isfinite(fit_exponent([r for (n, m), r in results.items() if m == "graphsfm-2"]))
 
 

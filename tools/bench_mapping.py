@@ -53,7 +53,8 @@ def run_graphsfm(db: Path, out: Path, max_cluster_size: int | None, workers: int
 
 
 def run_colmap(db: Path, out: Path, kind: str) -> tuple[Path | None, float]:
-    """pycolmap's mapper on a copy of ``db`` (``tools/resumable_colmap.py`` runs the incremental
+    """pycolmap's ``kind`` mapper ("incremental", "global" or "hierarchical": clusters mapped
+    incrementally and merged, COLMAP's divide and conquer) on a copy of ``db`` (``tools/resumable_colmap.py`` runs the incremental
     one in resumable segments for ``bench_scaling``)."""
     import pycolmap
 
@@ -62,10 +63,9 @@ def run_colmap(db: Path, out: Path, kind: str) -> tuple[Path | None, float]:
     (out / "images").mkdir(exist_ok=True)
     shutil.copy(db, out / "database.db")
     t0 = time.perf_counter()
-    if kind == "incremental":
-        models = pycolmap.incremental_mapping(str(out / "database.db"), str(out / "images"), str(out / "sparse"))
-    else:
-        models = pycolmap.global_mapping(str(out / "database.db"), str(out / "images"), str(out / "sparse"))
+    mapper = {"incremental": pycolmap.incremental_mapping, "global": pycolmap.global_mapping,
+              "hierarchical": pycolmap.hierarchical_mapping}[kind]  # default options each
+    models = mapper(str(out / "database.db"), str(out / "images"), str(out / "sparse"))
     elapsed = time.perf_counter() - t0
     if not models:
         return None, elapsed

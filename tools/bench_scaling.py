@@ -1,5 +1,6 @@
-"""Time against number of images: graphsfm (1 and 2 workers) and pycolmap's incremental and
-global mappers on the same synthetic aerial databases (the paper's efficiency table, Table 2).
+"""Time against number of images: graphsfm (1 and 2 workers) and pycolmap's incremental, global
+and hierarchical mappers on the same synthetic aerial databases (the paper's efficiency table,
+Table 2).
 
     python tools/bench_scaling.py --out DIR [--sizes 250 500 1000 2000 4000] [--skip-peers-above N]
 
@@ -32,8 +33,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_page import add_page_arguments, machine, publish  # noqa: E402
 
-METHODS = ("graphsfm-1", "graphsfm-2", "colmap-incremental", "colmap-global")
-PEERS = ("colmap-incremental", "colmap-global")
+METHODS = ("graphsfm-1", "graphsfm-2", "colmap-incremental", "colmap-global", "colmap-hierarchical")
+PEERS = ("colmap-incremental", "colmap-global", "colmap-hierarchical")
 
 
 def tree_rss(pid: int) -> int:
@@ -160,13 +161,14 @@ def unfinished(out: Path, n: int, method: str) -> str:
 
 def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | None = None) -> str:
     head = ["images", "method", "time_s", "peak_rss_gb", "registered", "points", "med_rot_deg", "auc@1",
-            "time / colmap-incremental", "code", "date", "machine"]
+            "time / colmap-incremental", "time / colmap-global", "code", "date", "machine"]
     machine = (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
                f"Python {platform.python_version()}; command: python tools/bench_scaling.py --out {out} "
                f"--sizes {' '.join(map(str, sizes))}")
     lines = [machine, "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for n in sizes:
         base = results.get((n, "colmap-incremental"), {}).get("time_s")
+        base_global = results.get((n, "colmap-global"), {}).get("time_s")
         for m in METHODS:
             r = results.get((n, m))
             if r is None:
@@ -175,7 +177,8 @@ def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | N
                 lines.append(f"| {n} | {m} | {why} |" + " |" * (len(head) - 3))
                 continue
             ratio = f"{r['time_s'] / base:.2f}" if base and r.get("time_s") else ""
-            cells = [str(r.get(k, "")) for k in head[:-4]] + [ratio, r.get("code", "not recorded"),
+            ratio_global = f"{r['time_s'] / base_global:.2f}" if base_global and r.get("time_s") else ""
+            cells = [str(r.get(k, "")) for k in head[:-5]] + [ratio, ratio_global, r.get("code", "not recorded"),
                                                               r.get("date", "not recorded"), r.get("machine", "")]
             lines.append("| " + " | ".join(cells) + " |")
     resumed = [f"{m} at {n} images ran in {r['segments']} segments (stopped at --peer-budget and resumed from "
