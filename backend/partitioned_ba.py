@@ -45,24 +45,42 @@ from backend.memory import physical_memory_bytes, return_freed_memory
 
 logger = logging.getLogger(__name__)
 _ERROR_ROWS = 1_000_000
-# Peak memory of one GTSAM BA per observation (its factor, linearised Jacobian, share of the
-# elimination and the caller's arrays), rounded up from the peak RSS of one final BA over the
-# 2,000-image synthetic aerial block (``graphsfm synth --scene aerial``).
-BYTES_PER_OBSERVATION = 2048
+# Peak memory of one GTSAM BA (points eliminated first) per observation: a part for the
+# observation itself (its factor, linearised Jacobian and the caller's arrays) and a part per
+# view of its track: eliminating a point seen by k cameras leaves a factor over those cameras,
+# 2k-3 rows by 6k+2 columns of doubles (about 96 k^2 bytes, 96 k per observation), which GTSAM may
+# hold until the cameras are eliminated.  So the memory grows with the observations times their
+# tracks' lengths, not with the observations alone.  Fitted from above to the peak RSS of one LM
+# iteration on rings of 300 cameras at 600k observations with tracks of 5, 20 and 60 views (1.2,
+# 1.3 and 6.2 kB per observation) and of the merged final BA of the 1,000-image synthetic aerial
+# block (1.83M observations, tracks of 10 views: 1.3 kB).
+BYTES_PER_OBSERVATION = 750
+BYTES_PER_OBSERVATION_AND_VIEW = 96
 # Share of the machine's physical memory one BA may take when no budget is given: the rest is
 # the process's model and database, the other workers and the system.
 MEMORY_SHARE = 0.5
 
 
-def observations_in_memory(memory_bytes: int | None = None, share: float = MEMORY_SHARE) -> int:
-    """The most observations one BA holds within ``share`` of ``memory_bytes`` (default: this
-    machine's physical memory); 0 (no limit) where the memory is unknown.  The budget of
-    :func:`bundle_adjust_partitioned`'s callers when the user gives none: split a BA only when
-    one does not fit (module docstring)."""
+def bytes_per_observation(track_lengths: np.ndarray | None = None) -> float:
+    """Peak memory of one BA per observation over tracks of these lengths (one per track):
+    ``BYTES_PER_OBSERVATION + BYTES_PER_OBSERVATION_AND_VIEW`` times the mean length of the
+    track an observation belongs to (``sum k^2 / sum k``); tracks of 10 views when unknown."""
+    lengths = np.asarray(track_lengths if track_lengths is not None else [10], float)
+    views = float(np.sum(lengths**2) / np.sum(lengths)) if np.sum(lengths) > 0 else 0.0
+    return BYTES_PER_OBSERVATION + BYTES_PER_OBSERVATION_AND_VIEW * views
+
+
+def observations_in_memory(memory_bytes: int | None = None, share: float = MEMORY_SHARE,
+                           track_lengths: np.ndarray | None = None) -> int:
+    """The most observations one BA over tracks of ``track_lengths`` (:func:`bytes_per_observation`)
+    holds within ``share`` of ``memory_bytes`` (default: this machine's physical memory); 0 (no
+    limit) where the memory is unknown.  The budget of :func:`bundle_adjust_partitioned`'s
+    callers when the user gives none: split a BA only when one does not fit (module docstring);
+    a random part of the tracks has their mix of lengths, so the budget holds for each part."""
     memory_bytes = physical_memory_bytes() if memory_bytes is None else memory_bytes
     if not memory_bytes:
         return 0
-    return max(1, int(memory_bytes * share) // BYTES_PER_OBSERVATION)
+    return max(1, int(memory_bytes * share / bytes_per_observation(track_lengths)))
 
 
 def bundle_adjust_partitioned(problem: BAProblem, num_parts: int, options: BAOptions = BAOptions(),

@@ -70,14 +70,14 @@ def test_final_ba_budget_defaults_to_what_the_memory_holds(tmp_path, monkeypatch
         return original(problem, num_parts, *args, **kwargs)
 
     monkeypatch.setattr(mapper_ba, "bundle_adjust_partitioned", spy)
-    monkeypatch.setattr(mapper_ba, "observations_in_memory", lambda: 4000)
+    monkeypatch.setattr(mapper_ba, "observations_in_memory", lambda **_: 4000)
     reconstruct_incremental(payload, MapperOptions())
     small_machine = list(parts)
     parts.clear()
     reconstruct_incremental(payload, MapperOptions(ba_max_observations=4000))
     assert parts == small_machine and max(parts) > 1
     parts.clear()
-    monkeypatch.setattr(mapper_ba, "observations_in_memory", lambda: 10**9)
+    monkeypatch.setattr(mapper_ba, "observations_in_memory", lambda **_: 10**9)
     reconstruct_incremental(payload, MapperOptions())
     assert set(parts) == {1}
 

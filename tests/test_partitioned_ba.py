@@ -97,12 +97,20 @@ def test_observation_sigmas_reach_every_part():
 
 def test_observation_budget_is_half_the_memory_over_the_bytes_per_observation(monkeypatch):
     """Without a budget, a BA is split only when one would take more than half of the
-    machine's memory: 8 GiB holds 2**32 / 2048 observations; unknown memory means no limit."""
+    machine's memory, at a cost per observation that grows with its track's length; unknown
+    memory means no limit."""
     import backend.partitioned_ba as partitioned_ba
 
-    assert partitioned_ba.observations_in_memory(8 * 2**30) == 2**32 // partitioned_ba.BYTES_PER_OBSERVATION
-    assert partitioned_ba.observations_in_memory(8 * 2**30, share=0.25) == 2**31 // partitioned_ba.BYTES_PER_OBSERVATION
+    per_obs = partitioned_ba.bytes_per_observation
+    # every observation of a 5-view track costs 750 + 96 * 5 bytes; of a mix, the mean track of an observation
+    assert per_obs(np.array([5, 5, 5])) == 750 + 96 * 5
+    assert per_obs(np.array([2, 8])) == pytest.approx(750 + 96 * (4 + 64) / 10)
+    assert per_obs() == 750 + 96 * 10
+    short, long = np.full(1000, 5), np.full(100, 50)  # the same 5000 observations
+    assert partitioned_ba.observations_in_memory(8 * 2**30, track_lengths=short) == int(2**32 / (750 + 480))
+    assert partitioned_ba.observations_in_memory(8 * 2**30, track_lengths=long) == int(2**32 / (750 + 4800))
+    assert partitioned_ba.observations_in_memory(8 * 2**30, share=0.25, track_lengths=short) == int(2**31 / 1230)
     monkeypatch.setattr(partitioned_ba, "physical_memory_bytes", lambda: 24 * 10**9)
-    assert partitioned_ba.observations_in_memory() == 12 * 10**9 // partitioned_ba.BYTES_PER_OBSERVATION
+    assert partitioned_ba.observations_in_memory(track_lengths=short) == int(12 * 10**9 / 1230)
     monkeypatch.setattr(partitioned_ba, "physical_memory_bytes", lambda: None)
     assert partitioned_ba.observations_in_memory() == 0

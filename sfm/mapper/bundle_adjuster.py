@@ -262,20 +262,26 @@ class BundleAdjuster:
     def _num_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most
         ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
-        budget = self.observation_budget()
+        budget = self.observation_budget(tracks)
         num_rows = len(self.state.inlier_rows(tracks)[0])
         parts = -(-num_rows // budget) if budget > 0 else 1
+        source = ("ba_max_observations" if self.opts.ba_max_observations is not None
+                  else "what half of the memory holds with these tracks' lengths")
         if parts > 1:
             log.info("%s: final BA over %d observations as the consensus of %d BAs over random track parts "
-                     "(ba_max_observations %d); the points are then re-estimated with the cameras held",
-                     self.state.payload.label, num_rows, parts, budget)
+                     "(at most %d observations each: %s); the points are then re-estimated with the cameras "
+                     "held", self.state.payload.label, num_rows, parts, budget, source)
         return parts
 
-    def observation_budget(self) -> int:
-        """``ba_max_observations``; None: as many as fit in this machine's memory
+    def observation_budget(self, tracks: np.ndarray) -> int:
+        """The most observations one BA over ``tracks`` holds: ``ba_max_observations``; None: as
+        many as fit in this machine's memory with these tracks' lengths
         (``backend.partitioned_ba.observations_in_memory``); 0: no limit."""
         budget = self.opts.ba_max_observations
-        return observations_in_memory() if budget is None else budget
+        if budget is not None:
+            return budget
+        _, owner = self.state.inlier_rows(tracks)
+        return observations_in_memory(track_lengths=np.bincount(owner))
 
     def track_subset(self, tracks: np.ndarray) -> np.ndarray:
         """The tracks a global BA optimises while the model grows: each image's best track in

@@ -56,7 +56,8 @@ class MapperOptions(Options):
         "off: 1 px everywhere, as COLMAP.")
     ba_max_observations: int | None = option(
         None, "The most observations one bundle adjustment holds in memory; a larger final BA is the "
-        "consensus of BAs over random track parts. Default: what half of the machine's memory holds. "
+        "consensus of BAs over random track parts. Default: what half of the machine's memory holds "
+        "(each observation costs more the longer its track). "
         "0: no limit.", min=0)
     min_model_size: int = option(3, "Smallest number of registered images kept as a model.", min=2)
     max_num_models: int = option(50, "The most models made from one input.", min=1)

@@ -180,7 +180,7 @@ class SelfCalibration:
         ``ba_max_observations``: then the growing model's track subset.  None when a half has
         fewer than ``MIN_HALF_IMAGES`` images or its system is singular."""
         s = self.state
-        budget = self.adjuster.observation_budget()
+        budget = self.adjuster.observation_budget(tracks)
         if budget and len(s.inlier_rows(tracks)[0]) > 2 * budget:
             tracks = self.adjuster.track_subset(tracks)  # each half within the BA memory budget
         images = free[s.cam_index[free] == camera]
