@@ -120,3 +120,16 @@ def test_the_table_shows_cached_rows_of_methods_not_run_this_time(tmp_path):
     text = (tmp_path / "scaling.md").read_text()
     assert "| 500 | colmap-incremental | 200.0 |" in text and "stopped unfinished" not in text
     assert "| 500 | graphsfm-2 | 50.0 |" in text and "| 0.25 |" in text
+
+
+def test_the_exponent_is_fitted_on_the_rows_of_one_code(tmp_path):
+    """Rows of an earlier code stay in the table but not in the fit: t = n (b = 1) for the
+    newest code's three sizes, a slower earlier row at 4000 images left out."""
+    def row(n, t, code, date):
+        return {"images": n, "method": "graphsfm-2", "time_s": t, "registered": n, "code": code, "date": date}
+
+    results = {(n, "graphsfm-2"): row(n, float(n), "code new", "2026-12-08") for n in (500, 1000, 2000)}
+    results[(4000, "graphsfm-2")] = row(4000, 40000.0, "code old", "2026-12-01")
+    text = report(tmp_path, [500, 1000, 2000, 4000], results)
+    assert "| 4000 | graphsfm-2 | 40000.0 |" in text
+    assert "- graphsfm-2: 1.00 (code new, 3 sizes)" in text

@@ -186,10 +186,15 @@ def report(out: Path, sizes: list[int], results: dict, skip_peers_above: int | N
     lines += [""] + [f"- {line}" for line in resumed] if resumed else []
     lines += ["", "code: the graphsfm code that ran (a hash of the git trees of sfm/, graph/ and backend/) "
               "or the peer's version; rows with one code come from the same algorithm code."]
-    lines += ["", "Fitted exponent b of t = a n^b over 500 images and up:"]
+    lines += ["", "Fitted exponent b of t = a n^b over 500 images and up, on the rows of the code of each "
+              "method's newest row:"]
     for m in METHODS:
-        b = fit_exponent([r for (n, mm), r in sorted(results.items()) if mm == m])
-        lines.append(f"- {m}: " + (f"{b:.2f}" if b is not None else "too few sizes"))
+        rows = [r for (n, mm), r in sorted(results.items()) if mm == m]
+        newest = max(rows, key=lambda r: (r.get("date", ""), r["images"])).get("code") if rows else None
+        same = [r for r in rows if r.get("code") == newest]
+        b = fit_exponent(same)
+        fitted = sum(1 for r in same if r["images"] >= 500)
+        lines.append(f"- {m}: " + (f"{b:.2f} ({newest}, {fitted} sizes)" if b is not None else "too few sizes"))
     return "\n".join(lines) + "\n"
 
 
