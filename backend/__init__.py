@@ -18,7 +18,8 @@ Design:
   variable per camera group.
 - Bundle adjustment is a GTSAM factor graph: a projection factor per observation under a robust
   loss (Huber by default; an observation's sigma can scale it), Levenberg-Marquardt (or
-  Gauss-Newton while every step lowers the cost) with a points-first or METIS ordering, and the
+  Gauss-Newton while every step lowers the cost) with the points eliminated first (the cameras in
+  METIS's order of their co-visibility graph on large problems), and the
   gauge fixed by priors on one pose and on the scale, or by the held poses.  Intrinsics are
   refined per group when asked.  Too many observations for memory: the consensus of BAs over
   random track parts; a growing model: a well-spread subset of the tracks.
@@ -36,7 +37,8 @@ Modules, in reading order:
   (section 3.2.1, Eq. 1-6; section 3.2.2, Eq. 10-11).
 - ``backend.ba_problem``: ``BAProblem``, ``BAOptions``, ``BAResult``.
 - ``backend.bundle_adjustment``: ``bundle_adjust``, the factor graph.
-- ``backend.gtsam_solver``: robust noise, the optimisers, their ordering and stopping rules.
+- ``backend.gtsam_solver``: robust noise, the optimisers, their ordering, stopping rules and
+  why they stopped, and GTSAM's printing kept off the terminal.
 - ``backend.track_subset``: which tracks a growing model's global BA needs.
 - ``backend.partitioned_ba``: a BA too large for memory, as a consensus of BAs over parts.
 - ``backend.memory``: giving freed heap memory back to the system between large steps.
