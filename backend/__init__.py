@@ -37,6 +37,8 @@ Modules, in reading order:
   (section 3.2.1, Eq. 1-6; section 3.2.2, Eq. 10-11).
 - ``backend.ba_problem``: ``BAProblem``, ``BAOptions``, ``BAResult``.
 - ``backend.bundle_adjustment``: ``bundle_adjust``, the factor graph.
+- ``backend.calibration_step``: what a BA would do to the calibration, and how well the data
+  determine it, without running it (the self-calibration tests read it).
 - ``backend.gtsam_solver``: robust noise, the optimisers, their ordering, stopping rules and
   why they stopped, and GTSAM's printing kept off the terminal.
 - ``backend.track_subset``: which tracks a growing model's global BA needs.

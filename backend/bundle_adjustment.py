@@ -20,9 +20,8 @@ otherwise. Components of the calibration that must not move are held by a tight 
 variable is tied by a one-row factor.
 The level of refinement may differ between groups (``BAOptions.refine_intrinsics`` per group; a
 group at "none" among refined ones is a calibration variable held whole by its prior).
-:func:`calibration_step` builds the same graph and, without optimising, gives each refined
-group's Gauss-Newton step and covariance (the poses and points marginalised out): what a BA would
-do to the calibration and how well the data determine it.
+:mod:`backend.calibration_step` linearises the same graph (:func:`build_graph`) without
+optimising it.
 (GTSAM 4.3 gotcha: Python's ``Cal3Bundler.uncalibrate`` binds Cal3f's and skips distortion;
 the C++ factors and ``PinholeCameraCal3Bundler.project`` apply k1 r2 + k2 r2² correctly.)
 Factors are added in a Python loop (GTSAM's Python API has no bulk constructor for them); the
@@ -38,12 +37,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
-from scipy import sparse
 from gtsam.symbol_shorthand import K, L, X
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.camera_models import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2
-from backend.gtsam_solver import captured_stdout, elimination_ordering, resolve_ordering, robust_noise, solve
+from backend.gtsam_solver import (captured_stdout, covisible_pose_keys, elimination_ordering, resolve_ordering,
+                                  robust_noise, solve)
 
 logger = logging.getLogger(__name__)
 Array = np.ndarray
@@ -100,7 +99,7 @@ def refine_level(distortion: bool, principal_point: bool) -> str:
     return next(level for level, parts in _LEVEL_PARTS.items() if parts == (distortion, principal_point))
 
 
-def _uses_bundler(model: str, refine: str) -> bool:
+def uses_bundler(model: str, refine: str) -> bool:
     """Cal3Bundler (f, k1, k2 variable; principal point constant) fits, else Cal3DS2."""
     return model in SINGLE_FOCAL_MODELS and not _LEVEL_PARTS.get(refine, (False, False))[1]
 
@@ -108,7 +107,7 @@ def _uses_bundler(model: str, refine: str) -> bool:
 def _add_calibration(graph, values, key: int, model: str, params: Array, refine: str) -> None:
     """Insert one group's calibration variable, with priors holding what is not refined."""
     ds2, free = ds2_from_params(model, params), free_ds2(model, refine)
-    if _uses_bundler(model, refine):
+    if uses_bundler(model, refine):
         values.insert(key, gtsam.Cal3Bundler(ds2[0], ds2[5], ds2[6], ds2[3], ds2[4]))
         held, sigmas = [j not in free for j in (0, 5, 6)], np.array([ds2[0], 1.0, 1.0])
         cal, prior = values.atCal3Bundler(key), gtsam.PriorFactorCal3Bundler
@@ -116,7 +115,7 @@ def _add_calibration(graph, values, key: int, model: str, params: Array, refine:
         values.insert(key, gtsam.Cal3DS2(*ds2))
         held, sigmas = [j not in free for j in range(9)], np.array([ds2[0]] * 5 + [1.0] * 4)
         cal, prior = values.atCal3DS2(key), gtsam.PriorFactorCal3DS2
-    if model in SINGLE_FOCAL_MODELS and not _uses_bundler(model, refine):  # tie fx = fy
+    if model in SINGLE_FOCAL_MODELS and not uses_bundler(model, refine):  # tie fx = fy
         tie_jacobian = np.eye(1, 9) - np.eye(1, 9, 1)
 
         def tie(this, vals, jacobians):
@@ -146,7 +145,7 @@ def _calibration_params(values, key: int, cameras: tuple, group: int, refine: st
     """The group's refined parameters; held ones exactly as given."""
     model = cameras[0][group]
     ds2 = ds2_from_params(model, cameras[1][group])
-    if _uses_bundler(model, refine):
+    if uses_bundler(model, refine):
         cal = values.atCal3Bundler(key)
         new = np.array([cal.fx(), cal.fx(), 0.0, cal.px(), cal.py(), cal.k1(), cal.k2(), 0.0, 0.0])
     else:
@@ -196,7 +195,7 @@ def _add_projection_factors(graph, values, cameras, obs, groups, noise: list, le
     factor = {}  # one calibration variable per group, shared by its observations
     for g in groups:
         _add_calibration(graph, values, K(g), camera_models[g], camera_params[g], levels[g])
-        bundler = _uses_bundler(camera_models[g], levels[g])
+        bundler = uses_bundler(camera_models[g], levels[g])
         factor[g] = (
             gtsam.GeneralSFMFactor2Cal3Bundler if bundler else gtsam.GeneralSFMFactor2Cal3DS2
         )
@@ -228,7 +227,7 @@ def _add_gauge(graph, values, poses: list, observed: Array, options: BAOptions, 
 
 
 @dataclass
-class _Graph:
+class BAGraph:
     """The factor graph of a problem and what :func:`bundle_adjust` needs of its building."""
 
     graph: gtsam.NonlinearFactorGraph
@@ -241,24 +240,16 @@ class _Graph:
     pose_variables: Array  # images whose pose is a variable
 
 
-def _camera_pairs(problem: BAProblem, built: _Graph, num_factors: int, options: BAOptions) -> Array | None:
-    """The pose keys of every two free images that see a common point, where the ordering
-    needs them (``backend.gtsam_solver.elimination_ordering``); else None."""
+def camera_pairs(problem: BAProblem, built: BAGraph, num_factors: int, options: BAOptions) -> Array | None:
+    """The co-visible pose variables' keys where the ordering needs them
+    (``backend.gtsam_solver.covisible_pose_keys``); else None."""
     if resolve_ordering(options.ordering, num_factors) != "points_then_metis":
         return None
-    obs_image, obs_point = np.asarray(problem.obs_image, np.int64), np.asarray(problem.obs_point, np.int64)
-    variable = np.zeros(len(problem.rotations), dtype=bool)
-    variable[built.pose_variables] = True
-    rows = variable[obs_image]
-    seen = sparse.csr_matrix((np.ones(int(rows.sum()), np.float32), (obs_point[rows], obs_image[rows])),
-                             shape=(len(problem.points), len(problem.rotations)))
-    covisible = sparse.triu(seen.T @ seen, k=1).tocoo()
-    if not covisible.nnz:
-        return None
-    return np.uint64(X(0)) + np.stack([covisible.row, covisible.col], axis=1).astype(np.uint64)  # X(i) = X(0) + i
+    return covisible_pose_keys(problem.obs_image, problem.obs_point, built.pose_variables, len(problem.rotations),
+                               len(problem.points))
 
 
-def _build(problem: BAProblem, options: BAOptions) -> _Graph:
+def build_graph(problem: BAProblem, options: BAOptions) -> BAGraph:
     """The graph and initial values of ``problem`` under ``options`` (module docstring)."""
     camera_models, camera_params, image_camera = problem.camera_models, problem.camera_params, problem.image_camera
     obs_image, obs_point, obs_xy, obs_sigma = problem.obs_image, problem.obs_point, problem.obs_xy, problem.obs_sigma
@@ -290,7 +281,7 @@ def _build(problem: BAProblem, options: BAOptions) -> _Graph:
     if not constant:
         _add_gauge(graph, values, poses, observed, options, held)
     pose_variables = np.array([i for i in observed.tolist() if i not in constant], np.int64)
-    return _Graph(graph, values, levels, refined, observed, seen_points, cameras, pose_variables)
+    return BAGraph(graph, values, levels, refined, observed, seen_points, cameras, pose_variables)
 
 
 def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BAResult:
@@ -302,12 +293,12 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     """
     start = time.perf_counter()
     with captured_stdout("bundle adjustment") as printed:
-        built = _build(problem, options)
+        built = build_graph(problem, options)
         graph, values = built.graph, built.values
         built_s = time.perf_counter() - start
         logger.debug("BA graph: %d factors, %d variables, %.2f s", graph.size(), values.size(), built_s)
         history: list[tuple[float, float]] = []
-        run = solve(graph, values, options, history, "bundle adjustment", _camera_pairs(problem, built, graph.size(), options))
+        run = solve(graph, values, options, history, "bundle adjustment", camera_pairs(problem, built, graph.size(), options))
         initial_cost, final_cost = graph.error(values), graph.error(run.values)
     result, levels, refined = run.values, built.levels, built.refined
     observed, seen_points, cameras = built.observed, built.seen_points, built.cameras
@@ -349,83 +340,3 @@ def bundle_adjust(problem: BAProblem, options: BAOptions = BAOptions()) -> BARes
     level = logging.INFO if options.verbose else logging.DEBUG
     logger.log(level, "BA on %d observations: RMS %s, %.2f s", len(obs_image), summary, res.time_s)
     return res
-
-
-def calibration_step(problem: BAProblem, options: BAOptions) -> list[tuple[Array, Array] | None]:
-    """Per camera group, ``(step, covariance)`` of its Cal3DS2 vector [fx, fy, s, u0, v0, k1, k2,
-    p1, p2] at the problem's values, without optimising: the graph of :func:`bundle_adjust`
-    linearised there (the robust loss weighs each observation by its current error), every point
-    and pose eliminated (the Schur complement onto the calibration variables, exact), then over
-    the free components (the held ones conditioned on, their rows zero) the Gauss-Newton step
-    ``Lambda^-1 eta`` and the covariance ``Lambda^-1`` times the a-posteriori variance factor
-    ``s0^2 = sum of squared whitened residuals / redundancy`` (the photogrammetric estimate of the
-    observations' variance, of which their sigmas are only relative weights), the residuals
-    taken at the optimum the step predicts (the linearised cost with every pose and point at its
-    optimum and the free components moved by the step), not at the given values: a state short
-    of convergence (a growing model before its final BA) would otherwise inflate the covariance
-    by its excess cost.  At a BA's optimum with some components held, the step is where freeing
-    them would move them to first order, and the covariance how well the data determine them.
-    A Cal3Bundler group's (f, k1, k2) fill [fx and fy, k1, k2].  None for groups not refined or
-    without observations, and for every group when the system is singular."""
-    built = _build(problem, options)
-    graph, values, levels, refined, cameras = built.graph, built.values, built.levels, built.refined, built.cameras
-    out: list[tuple[Array, Array] | None] = [None] * len(problem.camera_models)
-    if not refined:
-        return out
-    keys = [K(g) for g in refined]
-    last = set(keys)
-    others = [k for k in values.keys() if k not in last]
-    try:
-        with captured_stdout("calibration step"):
-            linear = graph.linearize(values)
-        # the BA's own ordering (backend.gtsam_solver), the calibrations last and kept
-        name = options.ordering if options.ordering not in ("metis", "colamd") else "points_then_metis"
-        ordering = elimination_ordering(name, graph, values, _camera_pairs(problem, built, graph.size(),
-                                                                          replace(options, ordering=name)), tuple(keys))
-        order = [ordering.at(i) for i in range(ordering.size() - len(keys))]
-        _, rest = linear.eliminatePartialMultifrontal(gtsam.Ordering(order))
-        information, eta = rest.hessian(gtsam.Ordering(keys))
-    except RuntimeError as exc:
-        logger.debug("calibration step: %s", exc)
-        return out
-    sizes = [3 if _uses_bundler(cameras[0][g], levels[g]) else 9 for g in refined]
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-    free = np.concatenate([o + np.array(_free_local(cameras[0][g], levels[g]), int)
-                           for g, o in zip(refined, offsets[:-1])])
-    num_poses = sum(1 for k in others if gtsam.Symbol(k).chr() == ord("x"))
-    redundancy = 2 * len(problem.obs_image) - (6 * num_poses + 3 * (len(others) - num_poses) + len(free) - 7)
-    try:
-        inverse = np.linalg.inv(information[np.ix_(free, free)])
-    except np.linalg.LinAlgError:
-        return out
-    if redundancy <= 0 or not np.all(np.isfinite(inverse)):
-        return out
-    step, cov = np.zeros(offsets[-1]), np.zeros((offsets[-1], offsets[-1]))
-    step[free] = inverse @ np.asarray(eta, float).ravel()[free]
-    # The residual at the optimum the step predicts: the eliminated poses and points take
-    # their optimal values for any calibration, so the reduced graph's error at the step is
-    # the whole linearised cost there.
-    at_step = gtsam.VectorValues()
-    for key, o, n in zip(keys, offsets[:-1], sizes):
-        at_step.insert(key, step[o:o + n])
-    variance_factor = 2.0 * max(rest.error(at_step), 0.0) / redundancy
-    cov[np.ix_(free, free)] = inverse * variance_factor
-    for g, o, n in zip(refined, offsets[:-1], sizes):
-        g_step, g_cov = step[o:o + n], cov[o:o + n, o:o + n]
-        if n == 3:  # Cal3Bundler (f, k1, k2) -> the Cal3DS2 layout, fx = fy = f
-            where = np.array([0, 1, 5, 6])
-            layout = np.zeros((4, 3))
-            layout[[0, 1, 2, 3], [0, 0, 1, 2]] = 1.0
-            g_step, g_cov = np.zeros(9), np.zeros((9, 9))
-            g_step[where] = layout @ step[o:o + n]
-            g_cov[np.ix_(where, where)] = layout @ cov[o:o + n, o:o + n] @ layout.T
-        out[g] = (g_step, g_cov)
-    return out
-
-
-def _free_local(model: str, refine: str) -> list[int]:
-    """The free components of a group's calibration variable in its own tangent layout."""
-    free = free_ds2(model, refine)
-    if _uses_bundler(model, refine):
-        return [k for k, j in enumerate((0, 5, 6)) if j in free]
-    return free

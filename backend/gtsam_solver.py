@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import X
+from scipy import sparse
 
 from backend.ba_problem import BAOptions
 
@@ -88,6 +90,24 @@ def elimination_ordering(name: str, graph, values: gtsam.Values, camera_pairs: n
         placed = set(poses)
         rest = poses + [k for k in rest if k not in placed]
     return gtsam.Ordering(keys[point].tolist() + rest + list(last))
+
+
+def covisible_pose_keys(obs_image: np.ndarray, obs_point: np.ndarray, pose_variables: np.ndarray,
+                        num_images: int, num_points: int) -> np.ndarray | None:
+    """The keys ``(X(i), X(j))``, i < j, of every two images among ``pose_variables`` that see a
+    common point (observation arrays as in :class:`backend.ba_problem.BAProblem`): the
+    structure of the reduced camera system, which "points_then_metis" orders
+    (:func:`elimination_ordering`); None when no two share a point."""
+    obs_image, obs_point = np.asarray(obs_image, np.int64), np.asarray(obs_point, np.int64)
+    variable = np.zeros(num_images, dtype=bool)
+    variable[np.asarray(pose_variables, np.int64)] = True
+    rows = variable[obs_image]
+    seen = sparse.csr_matrix((np.ones(int(rows.sum()), np.float32), (obs_point[rows], obs_image[rows])),
+                             shape=(num_points, num_images))
+    covisible = sparse.triu(seen.T @ seen, k=1).tocoo()
+    if not covisible.nnz:
+        return None
+    return np.uint64(X(0)) + np.stack([covisible.row, covisible.col], axis=1).astype(np.uint64)  # X(i) = X(0) + i
 
 
 def _configure(params, graph, values, options: BAOptions, history: list | None, name: str,

@@ -17,7 +17,8 @@ from _helpers_bundle_adjustment import observe, perturb, ring_scene
 from scipy.spatial.transform import Rotation
 
 from backend.ba_problem import BAOptions, BAProblem
-from backend.bundle_adjustment import bundle_adjust, calibration_step, cam_from_world_from_pose3, pose3_from_cam_from_world
+from backend.bundle_adjustment import bundle_adjust, cam_from_world_from_pose3, pose3_from_cam_from_world
+from backend.calibration_step import calibration_step
 from backend.camera_models import ds2_from_params, project
 
 # a longer focal length: with 500 points and 0.5 px noise, pose and focal noise floors are
@@ -423,14 +424,14 @@ def test_stop_reasons_of_a_partitioned_ba_are_pooled():
 
 
 def test_points_then_metis_orders_points_then_poses_then_calibrations():
-    from backend.bundle_adjustment import _build, _camera_pairs
+    from backend.bundle_adjustment import build_graph, camera_pairs
     from backend.gtsam_solver import elimination_ordering
     from gtsam.symbol_shorthand import K, L, X
 
     scene = ring_scene(n_images=6, n_points=30)
     problem, options = BAProblem(**scene), BAOptions(refine_intrinsics="focal", ordering="points_then_metis")
-    built = _build(problem, options)
-    pairs = _camera_pairs(problem, built, built.graph.size(), options)
+    built = build_graph(problem, options)
+    pairs = camera_pairs(problem, built, built.graph.size(), options)
     assert len(pairs) == 15 and set(pairs.ravel().tolist()) == {X(i) for i in range(6)}  # every point seen by all
     order = elimination_ordering("points_then_metis", built.graph, built.values, pairs)
     keys = [order.at(i) for i in range(order.size())]

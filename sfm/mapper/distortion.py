@@ -18,7 +18,7 @@ a final BA refines a camera's distortion only when its estimate differs from the
 (the database's: zero unless ``--intrinsics`` or a camera prior gave others) by more than its
 uncertainty explains, ``d^T C^-1 d`` above the chi-square quantile of as many degrees of freedom
 as the model has distortion parameters at 99.73% (the two-sided 3-sigma level), with ``C`` their
-covariance from the BA (:func:`backend.bundle_adjustment.calibration_step`: poses and points
+covariance from the BA (:func:`backend.calibration_step.calibration_step`: poses and points
 marginalised out, scaled by the a-posteriori variance factor).  Otherwise the camera keeps its
 nominal distortion in that BA.  Without a covariance (a singular system) nothing shows the
 distortion undetermined, and it is refined, as COLMAP does.  An estimate no lens has, a parameter

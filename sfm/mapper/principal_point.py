@@ -14,7 +14,7 @@ a split-sample check:
 - significant: the shift from the nominal value is larger than its uncertainty explains,
   ``d^T C^-1 d`` above the chi-square quantile of 2 degrees of freedom at 99.73% (the two-sided
   3-sigma level), with ``C`` the principal point's 2x2 covariance from the BA
-  (:func:`backend.bundle_adjustment.calibration_step`: poses and points marginalised
+  (:func:`backend.calibration_step.calibration_step`: poses and points marginalised
   out, scaled by the a-posteriori variance factor);
 - determinable: its correlation with every other refined intrinsic (focal length, distortion)
   below :data:`MAX_CORRELATION` in magnitude; above it, the shift is a trade between parameters

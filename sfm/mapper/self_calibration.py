@@ -7,7 +7,7 @@ shift from the nominal value and two independent halves of the photos reproduce 
 each too weak to check it and do not contradict each other (``sfm.mapper.principal_point``).
 Both tests read the Gauss-Newton step a BA freeing those parameters would take at the current
 state, with its covariance
-(``backend.bundle_adjustment.calibration_step``), so they run before the final BA they decide,
+(``backend.calibration_step.calibration_step``), so they run before the final BA they decide,
 on the growing model's track subset (each image's best track per grid cell, so every image and
 every part of it counts): its covariance is larger than the full problem's, a conservative
 screen, at the cost of a fraction of the final BA.
@@ -31,7 +31,8 @@ from dataclasses import replace
 import numpy as np
 
 from backend.ba_problem import BAOptions, BAProblem
-from backend.bundle_adjustment import bundle_adjust, calibration_step, free_ds2, refine_level
+from backend.bundle_adjustment import bundle_adjust, free_ds2, refine_level
+from backend.calibration_step import calibration_step
 from backend.camera_models import ds2_from_params, model_spec
 from sfm.execution.spare_cores import run_beside
 from sfm.mapper.distortion import DistortionTest, check_distortion, distortion_components, hold_components

@@ -85,7 +85,7 @@ def refine_merged(state: MapperState, adjuster: BundleAdjuster, loss_scale: floa
     models decided of each camera (``decide=False``), which fits the poses the similarity
     transforms gave to the merged tracks; then with every camera's self-calibration decided
     again on all the photos (``SelfCalibration.retest``).  The tests linearise the BA at the
-    current state (``backend.bundle_adjustment.calibration_step``), which the first
+    current state (``backend.calibration_step.calibration_step``), which the first
     alternation brings to a BA's optimum: from the merged poses a few pixels off, the
     principal point's covariance comes out several times too wide and a shift the photos
     show is held.  When the first alternation converged and the tests keep every camera as it
