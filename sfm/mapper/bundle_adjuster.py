@@ -24,8 +24,10 @@ runs it (``backend``: a GTSAM factor graph) and hands the result back to the sta
   model determines, both tested before the BA at the current state
   (``sfm.mapper.self_calibration``); above
   ``ba_max_observations`` observations (by default as many as fit in half of the machine's
-  memory) as the consensus of BAs over random track parts (``backend.partitioned_ba``), the
-  points then re-estimated with the cameras held.
+  memory, an observation costing more the longer its track) as the consensus of BAs over random
+  track parts (``backend.partitioned_ba``), the points then re-estimated with the cameras held.
+  Each final BA's size, cost, iterations and why it stopped go to the log and to the model
+  (``Reconstruction.final_ba``, ``report.json``).
 
 Stopping rules: Levenberg-Marquardt stops when an iteration lowers the cost by less than
 :data:`GROWING_TOLERANCE` of it in a growing model (later BAs refine again), by less than
