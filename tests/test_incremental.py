@@ -52,6 +52,10 @@ def test_final_ba_split_into_track_parts_when_over_budget(tmp_path, caplog):
     errors = np.array([p.error for p in model.points3D.values()])
     assert 0.2 < errors.mean() < 1.0
     assert "as the consensus of" in caplog.text
+    ba = json.loads((tmp_path / "report.json").read_text())["models"][0]["final_ba"]
+    assert ba["parts"] > 1 and ba["stopped"].endswith("parts)")
+    # the RMS after is that of the points re-estimated for the pooled cameras: near the noise
+    assert 0.3 < ba["rms_after_px"] < 1.0 and ba["rms_after_px"] < ba["rms_before_px"] + 0.05
 
 
 def test_final_ba_budget_defaults_to_what_the_memory_holds(tmp_path, monkeypatch):

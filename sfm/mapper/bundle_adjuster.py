@@ -129,11 +129,16 @@ class BundleAdjuster:
                 refine = self.calibration.decided_levels(free)
             result = self._adjust(free, posing, refine, 100, tolerance, parts=parts, loss_scale=loss_scale,
                                   on_iteration=_report_final_ba(len(free)))
-            if result is not None:
-                self.final_bas.append(final_ba_summary(result, len(free), parts))
-                log.info("%s: final BA %s", s.payload.label, describe_final_ba(self.final_bas[-1]))
             if parts > 1:
                 self.refine_points(posing)
+            if result is not None:
+                summary = final_ba_summary(result, len(free), parts)
+                if parts > 1:  # the parts' points were each fitted to their part's cameras, not to the mean
+                    rows, _ = s.inlier_rows(posing)
+                    err = s.reprojection_errors(rows, s.track_xyz[s.obs_track[rows]])
+                    summary["rms_after_px"] = round(float(np.sqrt(np.mean(err**2))), 4) if len(err) else 0.0
+                self.final_bas.append(summary)
+                log.info("%s: final BA %s", s.payload.label, describe_final_ba(summary))
             if len(posing) < len(tracks):
                 self.refine_points(np.setdiff1d(tracks, posing, assume_unique=True))
         else:
@@ -363,8 +368,10 @@ class BundleAdjuster:
 
 def final_ba_summary(result: BAResult, num_images: int, parts: int) -> dict:
     """What a final BA did, for the log and ``report.json`` (each model's ``final_ba``): its
-    size, its cost and RMS reprojection error before and after, its iterations, why it stopped
-    and the lines GTSAM printed (kept off the terminal)."""
+    size, its cost (summed over the parts of a partitioned BA) and RMS reprojection error before
+    and after (a partitioned BA's: with the points re-estimated for the pooled cameras, set by
+    the caller), its iterations, why it stopped and the lines GTSAM printed (kept off the
+    terminal)."""
     return {"images": num_images, "observations": int(result.num_observations), "parts": parts,
             "iterations": int(result.iterations), "cost_before": float(result.initial_cost),
             "cost_after": float(result.final_cost), "rms_before_px": round(float(result.initial_rms), 4),
