@@ -41,8 +41,7 @@ from gtsam.symbol_shorthand import K, L, X
 
 from backend.ba_problem import BAOptions, BAProblem, BAResult
 from backend.camera_models import SINGLE_FOCAL_MODELS, ds2_from_params, params_from_ds2
-from backend.gtsam_solver import (captured_stdout, covisible_pose_keys, elimination_ordering, resolve_ordering,
-                                  robust_noise, solve)
+from backend.gtsam_solver import captured_stdout, covisible_pose_keys, resolve_ordering, robust_noise, solve
 
 logger = logging.getLogger(__name__)
 Array = np.ndarray
