@@ -269,8 +269,8 @@ class BundleAdjuster:
     def _num_parts(self, tracks: np.ndarray) -> int:
         """Number of random track parts a final BA is split into so that each holds at most
         ``ba_max_observations`` observations (``backend.partitioned_ba``); 1: one BA."""
-        budget = self.observation_budget(tracks)
-        num_rows = len(self.state.inlier_rows(tracks)[0])
+        _, owner = self.state.inlier_rows(tracks)
+        budget, num_rows = self.observation_budget(np.bincount(owner)), len(owner)
         parts = -(-num_rows // budget) if budget > 0 else 1
         source = ("ba_max_observations" if self.opts.ba_max_observations is not None
                   else "what half of the memory holds with these tracks' lengths")
@@ -280,15 +280,12 @@ class BundleAdjuster:
                      "held", self.state.payload.label, num_rows, parts, budget, source)
         return parts
 
-    def observation_budget(self, tracks: np.ndarray) -> int:
-        """The most observations one BA over ``tracks`` holds: ``ba_max_observations``; None: as
-        many as fit in this machine's memory with these tracks' lengths
-        (``backend.partitioned_ba.observations_in_memory``); 0: no limit."""
+    def observation_budget(self, track_lengths: np.ndarray) -> int:
+        """The most observations one BA over tracks of ``track_lengths`` (inlier rows in
+        registered images) holds: ``ba_max_observations``; None: as many as fit in this machine's
+        memory at these lengths (``backend.partitioned_ba.observations_in_memory``); 0: no limit."""
         budget = self.opts.ba_max_observations
-        if budget is not None:
-            return budget
-        _, owner = self.state.inlier_rows(tracks)
-        return observations_in_memory(track_lengths=np.bincount(owner))
+        return observations_in_memory(track_lengths=track_lengths) if budget is None else budget
 
     def track_subset(self, tracks: np.ndarray) -> np.ndarray:
         """The tracks a global BA optimises while the model grows: each image's best track in

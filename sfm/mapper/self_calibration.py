@@ -181,8 +181,9 @@ class SelfCalibration:
         ``ba_max_observations``: then the growing model's track subset.  None when a half has
         fewer than ``MIN_HALF_IMAGES`` images or its system is singular."""
         s = self.state
-        budget = self.adjuster.observation_budget(tracks)
-        if budget and len(s.inlier_rows(tracks)[0]) > 2 * budget:
+        _, owner = s.inlier_rows(tracks)
+        budget = self.adjuster.observation_budget(np.bincount(owner))
+        if budget and len(owner) > 2 * budget:
             tracks = self.adjuster.track_subset(tracks)  # each half within the BA memory budget
         images = free[s.cam_index[free] == camera]
         centers = -np.einsum("nji,nj->ni", s.R[images], s.t[images])

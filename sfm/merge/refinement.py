@@ -93,11 +93,13 @@ def refine_merged(state: MapperState, adjuster: BundleAdjuster, loss_scale: floa
     converged = alternate_until_converged(
         state, lambda: adjuster.global_(final=True, loss_scale=loss_scale, decide=False)) < MAX_REFINEMENTS
     adjuster.calibration.retest()
-    first = [converged]  # only the first BA may be skipped: later ones follow a re-triangulation
+    skippable = converged  # only the first BA may be skipped: later ones follow a re-triangulation
 
     def adjust() -> bool:
-        skippable, first[0] = first[0], False
-        return adjuster.global_(final=True, loss_scale=loss_scale, only_if_changed=skippable)
+        nonlocal skippable
+        ran = adjuster.global_(final=True, loss_scale=loss_scale, only_if_changed=skippable)
+        skippable = False
+        return ran
 
     alternate_until_converged(state, adjust)
 
