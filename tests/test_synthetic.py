@@ -131,3 +131,46 @@ def test_evaluate_recovers_a_known_rotation_error(tmp_path):
     result = evaluate(model, gt)
     assert result.rotation_errors_deg["orbit_00007.jpg"] == pytest.approx(1.5, abs=1e-6)
     assert result.auc[1] == pytest.approx(171 / 190, abs=1e-9)  # its 19 pairs now err by >= 1.5 deg
+
+
+def test_street_twins_match_with_the_apparent_geometry(tmp_path):
+    """A street with twins: each copy is its original moved along the street (twin 0) or turned
+    to face it from across the street (twin 1), and a pair whose images see the two copies is
+    verified with the twin's matches, which satisfy the apparent epipolar geometry (camera 2
+    moved by the twin's motion).  Along a straight street that geometry can be the true one's
+    too (a shift along the direction of travel moves no epipolar line), so a twin's pairs look
+    right to two-view verification, as in photos of a street."""
+    opts = SynthOptions(scene="street", num_images=120, observations_per_image=600, seed=4, twins=2)
+    s = make_scene(opts)
+    labels, counts = np.unique(s.appearance, return_counts=True)
+    copied = labels[counts == 2]
+    assert len(copied) > 100  # the twins' points, each with one copy
+    section = (opts.num_images - 1) / (2 * opts.twins)
+    moved = turned = 0
+    for label in copied:
+        a, b = np.flatnonzero(s.appearance == label)
+        d = s.points[b] - s.points[a]
+        if abs(d[1]) < 1e-9:  # along the street, on the same facade
+            moved += 1
+            assert abs(abs(d[0]) - section) < 1e-9 and abs(d[2]) < 1e-9
+        else:  # across the street: y and the facade's normal flip, the height stays
+            turned += 1
+            assert abs(s.points[a, 1] + s.points[b, 1]) < 1e-9 and abs(d[2]) < 1e-9
+    assert moved > 50 and turned > 50
+    pairs = simulate_matching(s, opts)
+    twin_pairs = [p for p in pairs if p.twin_motion is not None and len(p.inlier_matches)]
+    assert len(twin_pairs) > 20
+    assert any(p.twin_motion[0][0, 0] < 0 for p in twin_pairs)  # the turned twin's pairs too
+    K_inv = np.linalg.inv(s.K)
+    for p in twin_pairs[:20]:
+        x1 = np.column_stack([s.keypoints[p.image1][p.inlier_matches[:, 0]], np.ones(len(p.inlier_matches))])
+        x2 = np.column_stack([s.keypoints[p.image2][p.inlier_matches[:, 1]], np.ones(len(p.inlier_matches))])
+        lines = x1 @ (K_inv.T @ essential_matrix(s, p.image1, p.image2, p.twin_motion) @ K_inv).T
+        dist = np.abs(np.sum(lines * x2, 1)) / np.linalg.norm(lines[:, :2], axis=1)
+        assert np.median(dist) < 1.5 and np.mean(dist < 2.0) > 0.9, (p.image1, p.image2)
+        points1 = s.obs_point[(s.obs_image == p.image1) & np.isin(s.obs_keypoint, p.inlier_matches[:, 0])]
+        assert np.isin(points1, s.obs_point[s.obs_image == p.image2]).mean() < 0.5  # mostly other points
+    with pytest.raises(InputError, match="too short"):
+        run_synth(tmp_path / "short", SynthOptions(scene="street", num_images=40, twins=2))
+    with pytest.raises(InputError, match="only the survey and street"):
+        run_synth(tmp_path / "orbit", SynthOptions(scene="orbit", num_images=40, twins=1))

@@ -31,7 +31,7 @@ from sfm.io.workspace import read_json, write_json_atomic
 from sfm.synthetic.matching import simulate_matching, write_database
 from sfm.synthetic.options import RenderOptions, SynthOptions
 from sfm.synthetic.rendered import write_rendered_scene
-from sfm.synthetic.scenes import gt_reconstruction, make_scene, write_gt_table
+from sfm.synthetic.scenes import TWIN_LENGTH_M, gt_reconstruction, make_scene, write_gt_table
 from sfm.synthetic.survey import camera_kind, description, gt_table, image_name, photo, survey_plan
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,11 @@ def run_synth(workspace: Path, opts: SynthOptions) -> dict:
         if (workspace / "images").exists():
             raise InputError(f"{workspace / 'images'} exists; synth writes a new workspace (remove it first)")
         return write_rendered_scene(workspace, RenderOptions(num_images=opts.num_images, seed=opts.seed))
+    if opts.twins and opts.scene != "street":
+        raise InputError(f"twins: only the survey and street scenes have them, not {opts.scene}")
+    if opts.twins and (opts.num_images - 1) / (2 * opts.twins) < TWIN_LENGTH_M + 10.0:
+        raise InputError(f"twins {opts.twins}: a street of {opts.num_images} images is too short for them "
+                         f"(each twin needs {2 * (TWIN_LENGTH_M + 10.0):.0f} images); fewer twins or more images")
     db_path = workspace / "database.db"
     if db_path.exists():
         raise InputError(f"{db_path} exists; synth writes a new workspace (remove it first)")

@@ -34,7 +34,8 @@ class SynthOptions(Options):
     height: int = option(960, "Image height in pixels.", min=16)
     focal: float | None = option(None, "Focal length in pixels (default: the image width).", above=0)
     seed: int = option(0, "The only source of randomness.", min=0)
-    twins: int = option(0, "Survey: building designs that stand, identical, in two or three places (repeated "
+    twins: int = option(0, "Survey: building designs that stand, identical, in two or three places; street: "
+                        "facade stretches that stand, identical, at two places along the street (repeated "
                         "structures); 0: every building unique.", min=0)
     gps_noise_m: float = option(3.0, "Survey: standard deviation in metres of the EXIF GPS position per "
                                 "axis.", min=0)

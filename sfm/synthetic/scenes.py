@@ -3,7 +3,9 @@
 Three correspondence-level scenes of any size, for tests and benchmarks:
 
 * ``orbit``: a ring of cameras around a bumpy sphere (an object-centred capture);
-* ``street``: a forward-moving camera between two facades above a ground plane;
+* ``street``: a forward-moving camera between two facades above a ground plane; with ``twins``,
+  stretches of facade that stand, identical, at two places along the street (repeated
+  structures: their features match as if they were one, :func:`street_twins`);
 * ``aerial``: a nadir grid over hilly terrain with ~70% forward and side overlap.
 
 Every 3D point is seen by the cameras whose frustum holds it, within a maximum distance and a
@@ -50,6 +52,9 @@ class SyntheticScene:
     obs_point: np.ndarray  # (M,) point index
     obs_keypoint: np.ndarray  # (M,) keypoint index in its image
     keypoints: list[np.ndarray] = field(default_factory=list)  # per image (K_i, 2), noisy
+    # (P,) what each point looks like: points of one label match each other (a twin's copy has
+    # its original's label); None: every point looks unique
+    appearance: np.ndarray | None = None
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802
@@ -144,6 +149,47 @@ def _sample_points(scene: str, centers: np.ndarray, count: int, rng: np.random.G
     return np.column_stack([xy, z]), normals
 
 
+# A street twin: this long a stretch of one facade, standing again further along the street.
+TWIN_LENGTH_M = 15.0
+
+
+def street_twins(points: np.ndarray, normals: np.ndarray, centers: np.ndarray, twins: int):
+    """``(points, normals, appearance, motions)`` of a street whose facades repeat: the street is
+    cut into ``2 * twins`` equal sections along x; twin ``k``'s original is the stretch of the left
+    facade (``TWIN_LENGTH_M`` long) 5 m into section ``2k``, and its copy, point for point, stands
+    5 m into section ``2k + 1``: on the same facade, moved along the street, for even ``k``; on
+    the facade across the street, turned to face it (half a turn about the vertical), for odd
+    ``k``.  ``appearance`` labels each point by what it looks like (a copy has its original's
+    label); ``motions[k] = (R, d)`` moves twin ``k``'s original onto its copy, ``R X + d``."""
+    appearance = np.arange(len(points))
+    if twins <= 0:
+        return points, normals, appearance, []
+    x0, x1 = centers[:, 0].min(), centers[:, 0].max()
+    section = (x1 - x0) / (2 * twins)
+    length = min(TWIN_LENGTH_M, section / 2)
+    keep = np.ones(len(points), bool)
+    left, right = np.abs(points[:, 1] - 8.0) < 1.0, np.abs(points[:, 1] + 8.0) < 1.0
+    extra_points, extra_normals, extra_labels, motions = [], [], [], []
+    for k in range(twins):
+        start = x0 + 2 * k * section + 5.0
+        original = left & (points[:, 0] >= start) & (points[:, 0] < start + length)
+        if k % 2 == 0:
+            R, d = np.eye(3), np.array([section, 0.0, 0.0])
+            target = left
+        else:  # across the street: half a turn about the vertical through the stretch's copy
+            R = np.diag([-1.0, -1.0, 1.0])
+            d = np.array([2 * start + section + length, 0.0, 0.0])
+            target = right
+        keep &= ~(target & (points[:, 0] >= start + section) & (points[:, 0] < start + section + length))
+        extra_points.append(points[original] @ R.T + d)
+        extra_normals.append(normals[original] @ R.T)
+        extra_labels.append(appearance[original])
+        motions.append((R, d))
+    points = np.vstack([points[keep], *extra_points])
+    normals = np.vstack([normals[keep], *extra_normals])
+    return points, normals, np.concatenate([appearance[keep], *extra_labels]), motions
+
+
 def _visibility(points, normals, rotations, translations, K, width, height, max_dist, max_angle_deg):
     """Observations (image, point, true pixel) of points seen within the frustum, closer than
     ``max_dist`` and within ``max_angle_deg`` of the surface normal."""
@@ -190,6 +236,9 @@ def make_scene(opts: SynthOptions) -> SyntheticScene:
     count = max(2000, 20 * opts.observations_per_image)
     for _ in range(4):
         points, normals = _sample_points(opts.scene, centers, count, rng)
+        appearance = None
+        if opts.scene == "street" and opts.twins:
+            points, normals, appearance, _ = street_twins(points, normals, centers, opts.twins)
         obs_i, obs_p, obs_xy = _visibility(points, normals, rotations, translations, K, opts.width, opts.height, max_dist, max_angle)
         mean_obs = len(obs_i) / opts.num_images
         if mean_obs >= opts.observations_per_image or mean_obs == 0:
@@ -205,6 +254,7 @@ def make_scene(opts: SynthOptions) -> SyntheticScene:
     m = keep_points[obs_p]
     obs_i, obs_p, obs_xy = obs_i[m], new_index[obs_p[m]], obs_xy[m]
     points = points[keep_points]
+    appearance = None if appearance is None else appearance[keep_points]
 
     # Keypoints: noisy observations plus distractors, in a random order per image.
     keypoints, obs_kp = [], np.empty(len(obs_i), dtype=np.int64)
@@ -222,7 +272,8 @@ def make_scene(opts: SynthOptions) -> SyntheticScene:
         obs_kp[idx] = perm[:n_obs]
         keypoints.append(kps)
     names = [f"{opts.scene}_{i:05d}.jpg" for i in range(opts.num_images)]
-    return SyntheticScene(opts.width, opts.height, focal, names, rotations, translations, points, obs_i, obs_p, obs_kp, keypoints)
+    return SyntheticScene(opts.width, opts.height, focal, names, rotations, translations, points, obs_i, obs_p, obs_kp,
+                          keypoints, appearance)
 
 
 def with_lens(scene: SyntheticScene, model: str, params) -> SyntheticScene:
