@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from bench_scaling import fit_exponent, main, report, run_child, tree_rss
+from bench_scaling import fit_exponent, main, make_aerial, report, run_child, tree_rss
 
 
 def test_fit_exponent_recovers_a_power_law_from_500_images_up():
@@ -133,3 +133,12 @@ def test_the_exponent_is_fitted_on_the_rows_of_one_code(tmp_path):
     text = report(tmp_path, [500, 1000, 2000, 4000], results)
     assert "| 4000 | graphsfm-2 | 40000.0 |" in text
     assert "- graphsfm-2: 1.00 (code new, 3 sizes)" in text
+
+
+def test_make_aerial_writes_the_block_in_a_child_process(tmp_path):
+    make_aerial(tmp_path / "data", 12)
+    from sfm.io.database import Database
+
+    with Database(tmp_path / "data" / "database.db", readonly=True) as db:
+        assert len(db.read_images()) == 12
+    assert len((tmp_path / "data" / "gt" / "cameras_gt_opencv.txt").read_text().splitlines()) == 13
