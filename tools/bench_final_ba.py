@@ -112,8 +112,11 @@ def main(argv: list[str] | None = None) -> int:
         if k == 1:
             budget = 0
         else:  # the one BA's size decides the budget that splits it into k parts
-            whole = rows.get(1) or merge_run(out, n, mapped, 1, 0)
-            rows[1] = whole
+            whole_cache = out / "runs" / str(n) / "parts1.json"
+            if 1 not in rows:
+                rows[1] = json.loads(whole_cache.read_text()) if whole_cache.exists() and not args.force \
+                    else merge_run(out, n, mapped, 1, 0)
+            whole = rows[1]
             budget = math.ceil(SLACK * whole["observations"] / k)
         rows[k] = merge_run(out, n, mapped, k, budget)
         cache.parent.mkdir(parents=True, exist_ok=True)

@@ -121,6 +121,9 @@ def _aerial_cameras(n: int, rng: np.random.Generator, opts: SynthOptions, focal:
 
 
 # ---------------------------------------------------------------------------------- points
+# The street's facades stand at y = +-FACADE_Y_M (left and right of the walked line y = 0).
+FACADE_Y_M = 8.0
+
 def _sample_points(scene: str, centers: np.ndarray, count: int, rng: np.random.Generator):
     """``count`` surface points and their unit normals for a scene."""
     if scene == "orbit":
@@ -136,7 +139,7 @@ def _sample_points(scene: str, centers: np.ndarray, count: int, rng: np.random.G
         normals = np.zeros((count, 3))
         for side, sign in ((0, 1.0), (1, -1.0)):
             m = which == side
-            pts[m] = np.stack([x[m], sign * (8 + rng.normal(0, 0.2, m.sum())), rng.uniform(0, 12, m.sum())], 1)
+            pts[m] = np.stack([x[m], sign * (FACADE_Y_M + rng.normal(0, 0.2, m.sum())), rng.uniform(0, 12, m.sum())], 1)
             normals[m] = [0, -sign, 0]
         m = which == 2
         pts[m] = np.stack([x[m], rng.uniform(-7.5, 7.5, m.sum()), np.zeros(m.sum())], 1)
@@ -154,22 +157,22 @@ TWIN_LENGTH_M = 15.0
 
 
 def street_twins(points: np.ndarray, normals: np.ndarray, centers: np.ndarray, twins: int):
-    """``(points, normals, appearance, motions)`` of a street whose facades repeat: the street is
+    """``(points, normals, appearance)`` of a street whose facades repeat: the street is
     cut into ``2 * twins`` equal sections along x; twin ``k``'s original is the stretch of the left
     facade (``TWIN_LENGTH_M`` long) 5 m into section ``2k``, and its copy, point for point, stands
     5 m into section ``2k + 1``: on the same facade, moved along the street, for even ``k``; on
     the facade across the street, turned to face it (half a turn about the vertical), for odd
     ``k``.  ``appearance`` labels each point by what it looks like (a copy has its original's
-    label); ``motions[k] = (R, d)`` moves twin ``k``'s original onto its copy, ``R X + d``."""
+    label)."""
     appearance = np.arange(len(points))
     if twins <= 0:
-        return points, normals, appearance, []
+        return points, normals, appearance
     x0, x1 = centers[:, 0].min(), centers[:, 0].max()
     section = (x1 - x0) / (2 * twins)
     length = min(TWIN_LENGTH_M, section / 2)
     keep = np.ones(len(points), bool)
-    left, right = np.abs(points[:, 1] - 8.0) < 1.0, np.abs(points[:, 1] + 8.0) < 1.0
-    extra_points, extra_normals, extra_labels, motions = [], [], [], []
+    left, right = np.abs(points[:, 1] - FACADE_Y_M) < 1.0, np.abs(points[:, 1] + FACADE_Y_M) < 1.0
+    extra_points, extra_normals, extra_labels = [], [], []
     for k in range(twins):
         start = x0 + 2 * k * section + 5.0
         original = left & (points[:, 0] >= start) & (points[:, 0] < start + length)
@@ -184,10 +187,9 @@ def street_twins(points: np.ndarray, normals: np.ndarray, centers: np.ndarray, t
         extra_points.append(points[original] @ R.T + d)
         extra_normals.append(normals[original] @ R.T)
         extra_labels.append(appearance[original])
-        motions.append((R, d))
     points = np.vstack([points[keep], *extra_points])
     normals = np.vstack([normals[keep], *extra_normals])
-    return points, normals, np.concatenate([appearance[keep], *extra_labels]), motions
+    return points, normals, np.concatenate([appearance[keep], *extra_labels])
 
 
 def _visibility(points, normals, rotations, translations, K, width, height, max_dist, max_angle_deg):
@@ -238,7 +240,7 @@ def make_scene(opts: SynthOptions) -> SyntheticScene:
         points, normals = _sample_points(opts.scene, centers, count, rng)
         appearance = None
         if opts.scene == "street" and opts.twins:
-            points, normals, appearance, _ = street_twins(points, normals, centers, opts.twins)
+            points, normals, appearance = street_twins(points, normals, centers, opts.twins)
         obs_i, obs_p, obs_xy = _visibility(points, normals, rotations, translations, K, opts.width, opts.height, max_dist, max_angle)
         mean_obs = len(obs_i) / opts.num_images
         if mean_obs >= opts.observations_per_image or mean_obs == 0:
